@@ -63,7 +63,9 @@ def test_mujoco_round_trip(vp):
     back = viewpoint_from_mujoco_camera(pos, quat)
     np.testing.assert_allclose(back.as_array(), vp.as_array(), atol=1e-9)
     # MuJoCo cameras look along their -z axis
-    np.testing.assert_allclose(-matrix_from_quat(quat)[:, 2], forward_vectors(vp.yaw_deg, vp.pitch_deg), atol=1e-12)
+    np.testing.assert_allclose(
+        -matrix_from_quat(quat)[:, 2], forward_vectors(vp.yaw_deg, vp.pitch_deg), atol=1e-12
+    )
 
 
 def test_quaternion_round_trip():
