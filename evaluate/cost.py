@@ -1,0 +1,115 @@
+"""Cost metrics of a run (images, flight length, stage times), read from its run directory.
+
+What is read (every file optional; a value whose source is missing is recorded as None):
+
+- ``plan/viewpoints.csv``: ``n_viewpoints`` and ``flight_length_m`` (the polyline through the
+  viewpoints in flight order, recomputed here so it cannot disagree with the flight flown).
+- ``plan/plan.json``: ``plan_time_s`` from ``plan_time_s``, else ``timings_s.total``, else ``time_s``.
+- ``images/cameras.json`` (the renderer's record): ``n_images`` (its ``images`` list) and
+  ``render_time_s``.
+- ``recon/recon.json`` (the reconstruction's record): ``registered_fraction`` (or
+  ``n_registered / n_images``), ``n_registered``, ``align_time_s`` (or the sum of
+  ``extraction_time_s + matching_time_s + mapping_time_s``: the paper's alignment time) and
+  ``dense_time_s``; its ``n_images`` when there is no render record.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Mapping
+from pathlib import Path
+
+from planner.base import polyline_length, read_viewpoints
+
+log = logging.getLogger(__name__)
+
+COST_KEYS = (
+    "n_viewpoints",
+    "n_images",
+    "n_registered",
+    "registered_fraction",
+    "flight_length_m",
+    "plan_time_s",
+    "render_time_s",
+    "align_time_s",
+    "dense_time_s",
+)
+ALIGN_PARTS = ("extraction_time_s", "matching_time_s", "mapping_time_s")
+
+
+def collect_cost_metrics(run_dir: str | Path) -> dict:
+    """Cost metrics of the run in ``run_dir`` (see the module docstring for the files read).
+
+    Returns:
+        A flat dict with every key of ``COST_KEYS`` (counts, fraction 0-1, metres, seconds; None
+        where the run directory does not say).
+
+    Raises:
+        ValueError: a record file exists but is not a JSON object, or a value has the wrong type
+            (the message names the file and key).
+    """
+    run_dir = Path(run_dir)
+    out: dict = dict.fromkeys(COST_KEYS)
+
+    viewpoints_csv = run_dir / "plan" / "viewpoints.csv"
+    if viewpoints_csv.is_file():
+        viewpoints, _ = read_viewpoints(viewpoints_csv)
+        out["n_viewpoints"] = len(viewpoints)
+        out["flight_length_m"] = polyline_length(viewpoints[:, :3])
+
+    plan = _read_json(run_dir / "plan" / "plan.json")
+    timings = plan.get("timings_s") if isinstance(plan.get("timings_s"), Mapping) else {}
+    out["plan_time_s"] = _number(plan, "plan_time_s", run_dir / "plan" / "plan.json")
+    if out["plan_time_s"] is None:
+        out["plan_time_s"] = _number(timings, "total", run_dir / "plan" / "plan.json")
+    if out["plan_time_s"] is None:
+        out["plan_time_s"] = _number(plan, "time_s", run_dir / "plan" / "plan.json")
+    if out["flight_length_m"] is None:
+        out["flight_length_m"] = _number(plan, "flight_length_m", run_dir / "plan" / "plan.json")
+
+    cameras_path = run_dir / "images" / "cameras.json"
+    cameras = _read_json(cameras_path)
+    if isinstance(cameras.get("images"), list):
+        out["n_images"] = len(cameras["images"])
+    out["render_time_s"] = _number(cameras, "render_time_s", cameras_path)
+
+    recon_path = run_dir / "recon" / "recon.json"
+    recon = _read_json(recon_path)
+    if out["n_images"] is None:
+        out["n_images"] = _number(recon, "n_images", recon_path)
+    out["n_registered"] = _number(recon, "n_registered", recon_path)
+    out["registered_fraction"] = _number(recon, "registered_fraction", recon_path)
+    if out["registered_fraction"] is None and out["n_registered"] is not None and out["n_images"]:
+        out["registered_fraction"] = out["n_registered"] / out["n_images"]
+    out["align_time_s"] = _number(recon, "align_time_s", recon_path)
+    if out["align_time_s"] is None:
+        parts = [_number(recon, key, recon_path) for key in ALIGN_PARTS]
+        out["align_time_s"] = sum(parts) if all(p is not None for p in parts) else None
+    out["dense_time_s"] = _number(recon, "dense_time_s", recon_path)
+
+    missing = [k for k, v in out.items() if v is None]
+    if missing:
+        log.info("cost metrics not found in %s: %s", run_dir, ", ".join(missing))
+    return out
+
+
+def _read_json(path: Path) -> Mapping:
+    if not path.is_file():
+        return {}
+    try:
+        record = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not valid JSON ({exc})") from exc
+    if not isinstance(record, dict):
+        raise ValueError(f"{path}: expected a JSON object, got {type(record).__name__}")
+    return record
+
+
+def _number(record: Mapping, key: str, source: Path):
+    value = record.get(key)
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ValueError(f"{source}: {key!r} must be a number, got {value!r}")
+    return value

@@ -1,0 +1,87 @@
+"""The run's one flat ``metrics.json`` (the run-directory contract of DESIGN.md)."""
+
+from __future__ import annotations
+
+import math
+import platform
+from collections.abc import Mapping
+from importlib import metadata
+from pathlib import Path
+
+from scene.io import write_json_atomic
+
+METRICS_FILE = "metrics.json"
+# Libraries whose versions go into every record (the numbers depend on them).
+RECORDED_LIBRARIES = ("numpy", "scipy", "trimesh", "open3d", "pycolmap", "mujoco", "cma", "elkai", "opencv-python-headless")
+
+
+def library_versions() -> dict:
+    """``{"python_version": ..., "numpy_version": ..., ...}``; None for a library that is not installed."""
+    versions = {"python_version": platform.python_version()}
+    for name in RECORDED_LIBRARIES:
+        try:
+            version = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            version = None
+        versions[f"{name.split('-')[0]}_version"] = version
+    return versions
+
+
+def run_identity(cfg: Mapping | None) -> dict:
+    """``scene``, ``planner``, ``seed`` (and ``experiment``) from a composed run config (None where absent)."""
+    cfg = cfg or {}
+
+    def name(group: str):
+        value = cfg.get(group)
+        return value.get("name") if isinstance(value, Mapping) else value
+
+    seed = cfg.get("seed")
+    return {
+        "scene": name("scene"),
+        "planner": name("planner"),
+        "seed": int(seed) if seed is not None else None,
+        "experiment": name("experiment"),
+    }
+
+
+def write_metrics(run_dir: str | Path, record: Mapping, cfg: Mapping | None = None) -> Path:
+    """Write ``run_dir/metrics.json`` atomically: the flat ``record``, plus the config's
+    scene/planner/seed where the record lacks them, plus the library versions.
+
+    Args:
+        run_dir: the run directory.
+        record: flat mapping of str -> None/bool/int/float/str (numpy scalars accepted); NaN and
+            infinity are written as null (JSON has neither).
+        cfg: the composed run config as a plain mapping (``OmegaConf.to_container(cfg)``), or None.
+
+    Returns:
+        The path of ``metrics.json``.
+
+    Raises:
+        TypeError: a value is not a scalar (the record must stay flat), naming its key.
+    """
+    out: dict = {}
+    for key, value in run_identity(cfg).items():
+        if value is not None:
+            out[key] = value
+    for key, value in record.items():
+        if not isinstance(key, str):
+            raise TypeError(f"metrics record keys must be strings, got {key!r}")
+        out[key] = _scalar(key, value)
+    for key, value in library_versions().items():
+        out.setdefault(key, value)
+    return write_json_atomic(Path(run_dir) / METRICS_FILE, out)
+
+
+def _scalar(key: str, value):
+    if value is None or isinstance(value, bool | str):
+        return value
+    if hasattr(value, "item") and getattr(value, "ndim", 0) == 0:  # numpy scalar / 0-d array
+        value = value.item()
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, int):
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    raise TypeError(f"metrics.json must stay flat: {key!r} is a {type(value).__name__} ({value!r:.80})")

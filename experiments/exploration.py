@@ -1,0 +1,74 @@
+"""The exploratory flight and the proxy built from it, cached and shared by every planner of a scene.
+
+Flight (lawnmower aimed at the structure centre, as in the paper) -> rendered images -> pycolmap
+SfM + dense -> Poisson proxy mesh. The cache key covers everything the proxy depends on (scene,
+camera, exploration, render and reconstruction settings, seed), so sweep cells that differ only in
+the planner share one proxy; concurrent cells wait for the first builder (experiments/cache.py).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import trimesh
+from omegaconf import DictConfig, OmegaConf
+
+from experiments.cache import cache_key, cached_entry
+from planner.base import write_plan
+from scene.base import Scene
+from scene.camera import Intrinsics
+
+log = logging.getLogger(__name__)
+
+PROXY_FILE = "proxy.ply"
+
+
+def exploration_cache_key(cfg: DictConfig) -> str:
+    """Content key of the exploratory flight + proxy for a composed run config."""
+
+    def plain(node):
+        return OmegaConf.to_container(node, resolve=True)
+
+    return cache_key(
+        plain(cfg.scene), plain(cfg.camera), plain(cfg.exploration), plain(cfg.render), plain(cfg.reconstruct),
+        int(cfg.seed),
+    )
+
+
+def build_exploration_proxy(scene: Scene, intrinsics: Intrinsics, cfg: DictConfig) -> tuple[trimesh.Trimesh, dict]:
+    """Fly, render and reconstruct the exploratory flight once, and return its proxy mesh.
+
+    Args:
+        scene: the ground-truth scene (rendered, never shown to the planner).
+        intrinsics: the survey camera.
+        cfg: the composed run config (uses ``exploration``, ``render``, ``reconstruct``, ``cache_dir``,
+            ``seed``).
+
+    Returns:
+        (proxy mesh in world metres, record with the exploration's image count, registered fraction,
+        timings, cache entry path and whether it was a cache hit).
+    """
+    from planner.lawnmower import plan_exploration
+    from reconstruct.pipeline import build_proxy
+    from render import render_flight
+
+    seed = int(cfg.seed)
+
+    def build(entry: Path) -> dict:
+        plan = plan_exploration(scene.structure_bounds, intrinsics, cfg.exploration, seed)
+        write_plan(plan, entry / "plan")
+        log.info("exploration: %d viewpoints; rendering", len(plan.viewpoints))
+        rendered = render_flight(scene, plan.viewpoints, intrinsics, entry / "images", cfg.render, kinds=plan.kinds)
+        proxy, record = build_proxy(entry / "images", entry / "recon", cfg.reconstruct, seed)
+        proxy.export(entry / PROXY_FILE)
+        return {
+            "n_images": len(plan.viewpoints),
+            "render_time_s": rendered.render_time_s,
+            "n_faces": len(proxy.faces),
+            **{k: v for k, v in record.items() if isinstance(v, int | float | str | bool)},
+        }
+
+    entry, record = cached_entry(cfg.cache_dir, "exploration", exploration_cache_key(cfg), build)
+    proxy = trimesh.load(entry / PROXY_FILE, force="mesh", process=False)
+    return proxy, {**record, "entry": str(entry)}

@@ -1,0 +1,561 @@
+"""The paper's figures from run directories: flight paths (Fig. 4), error views (Fig. 3), metrics vs images.
+
+    python -m experiments.figures multirun/2026-11-23_06-00-00 --out figures/
+
+writes, each as PNG and PDF:
+``flight_<scene>_<planner>``: the planned flight over the scene (3-D view and top view), viewpoints
+coloured by kind, the trajectory in flight order and an arrow along each camera's viewing direction;
+``flight_paths_<planner>``: that planner's flights over every scene side by side (the paper's Fig. 4);
+``errors_<scene>``: the evaluation's error images of every method side by side (one column per method);
+``metrics_vs_images``: accuracy and completeness against the number of images, one panel per scene.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
+from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from experiments.runs import (  # noqa: E402
+    Run,
+    RunDirectoryError,
+    load_runs,
+    method_name,
+    method_sort_key,
+    read_run_viewpoints,
+    run_scene_mesh,
+    runs_frame,
+    scene_name,
+    scene_sort_key,
+)
+from planner.base import polyline_length  # noqa: E402
+from scene.camera import forward_vectors  # noqa: E402
+from scene.io import write_atomic  # noqa: E402
+
+log = logging.getLogger(__name__)
+
+# Fixed colours for the viewpoint kinds the planners emit, so a kind looks the same in every figure.
+KIND_COLOURS = {
+    "detail": "#d62728",
+    "coverage": "#1f77b4",
+    "grid": "#2ca02c",
+    "oblique": "#ff7f0e",
+    "nadir": "#9467bd",
+    "exploration": "#8c564b",
+}
+_SPARE_COLOURS = ("#e377c2", "#17becf", "#bcbd22", "#7f7f7f", "#393b79", "#637939")
+METHOD_MARKERS = {"ours": "o", "smith": "s", "yan": "^", "lawnmower": "D"}
+_SPARE_MARKERS = ("v", "P", "X", "*", "<", ">")
+# Longest error image shown in a panel, in inches (keeps a panel of many views printable).
+PANEL_CELL_IN = 3.2
+
+
+def kind_colour(kind: str, known: Sequence[str] = ()) -> str:
+    """Colour of a viewpoint kind; kinds without a fixed colour take spare ones in order of ``known``."""
+    if kind in KIND_COLOURS:
+        return KIND_COLOURS[kind]
+    others = [k for k in known if k not in KIND_COLOURS]
+    index = others.index(kind) if kind in others else len(others)
+    return _SPARE_COLOURS[index % len(_SPARE_COLOURS)]
+
+
+def method_marker(planner: str, known: Sequence[str] = ()) -> str:
+    """Scatter marker of a planner (``ours`` a circle, ``smith`` a square, ...)."""
+    if planner in METHOD_MARKERS:
+        return METHOD_MARKERS[planner]
+    others = [p for p in known if p not in METHOD_MARKERS]
+    index = others.index(planner) if planner in others else len(others)
+    return _SPARE_MARKERS[index % len(_SPARE_MARKERS)]
+
+
+def decimate_mesh(mesh, max_faces: int):
+    """``mesh`` with at most ``max_faces`` triangles (quadric decimation; unchanged if already small).
+
+    Args:
+        mesh: a ``trimesh.Trimesh``.
+        max_faces: the largest triangle count to keep (>= 4).
+    """
+    import trimesh
+
+    if max_faces < 4:
+        raise ValueError(f"max_faces must be at least 4, got {max_faces}")
+    if len(mesh.faces) <= max_faces:
+        return mesh
+    import open3d as o3d
+
+    o3d_mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(np.asarray(mesh.vertices, dtype=float)),
+        o3d.utility.Vector3iVector(np.asarray(mesh.faces, dtype=np.int32)),
+    )
+    simple = o3d_mesh.simplify_quadric_decimation(target_number_of_triangles=int(max_faces))
+    faces = np.asarray(simple.triangles)
+    if len(faces) == 0 or len(faces) > max_faces:
+        # Quadric decimation can fail on degenerate input; a random subset still shows the shape.
+        rng = np.random.default_rng(0)
+        keep = np.sort(rng.choice(len(mesh.faces), size=max_faces, replace=False))
+        return trimesh.Trimesh(mesh.vertices, mesh.faces[keep], process=False)
+    return trimesh.Trimesh(np.asarray(simple.vertices), faces, process=False)
+
+
+def _flight_extent(viewpoints: np.ndarray, mesh) -> tuple[np.ndarray, np.ndarray]:
+    points = viewpoints[:, :3] if mesh is None else np.vstack([viewpoints[:, :3], np.asarray(mesh.vertices)])
+    return points.min(axis=0), points.max(axis=0)
+
+
+def _check_plan(viewpoints, kinds) -> tuple[np.ndarray, list[str]]:
+    viewpoints = np.asarray(viewpoints, dtype=float).reshape(-1, 5)
+    kinds = list(kinds)
+    if len(kinds) != len(viewpoints):
+        raise ValueError(f"{len(kinds)} kinds for {len(viewpoints)} viewpoints")
+    return viewpoints, kinds
+
+
+def draw_flight_3d(ax, viewpoints, kinds, mesh=None, arrow_length_m: float | None = None, mesh_label="scene"):
+    """Draw a flight on a 3-D axes: light mesh, trajectory, one scatter and one quiver per kind.
+
+    Args:
+        ax: a matplotlib 3-D axes.
+        viewpoints: (V, 5) ``x, y, z, yaw_deg, pitch_deg`` in flight order (metres, degrees).
+        kinds: V viewpoint kinds.
+        mesh: a ``trimesh.Trimesh`` (decimated) or None.
+        arrow_length_m: arrow length in metres (default: 4 % of the extent of flight and mesh).
+        mesh_label: label of the mesh collection.
+    """
+    viewpoints, kinds = _check_plan(viewpoints, kinds)
+    positions = viewpoints[:, :3]
+    lo, hi = _flight_extent(viewpoints, mesh)
+    span = np.maximum(hi - lo, 1e-6)
+    if arrow_length_m is None:
+        arrow_length_m = 0.04 * float(np.linalg.norm(span))
+    directions = forward_vectors(viewpoints[:, 3], viewpoints[:, 4]) * arrow_length_m
+    if mesh is not None and len(mesh.faces):
+        triangles = np.asarray(mesh.vertices)[np.asarray(mesh.faces)]
+        # Lambertian grey under a light from the upper south-west, so walls and roofs read apart.
+        light = np.array([-0.4, -0.6, 1.0]) / np.linalg.norm([-0.4, -0.6, 1.0])
+        normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+        grey = 0.5 + 0.4 * np.abs(normals @ light)
+        colours = np.column_stack([grey, grey, grey, np.full(len(grey), 0.45)])
+        surface = Poly3DCollection(triangles, facecolors=colours, edgecolor="none", label=mesh_label)
+        surface.set_rasterized(True)  # keeps the PDF small for meshes of thousands of triangles
+        ax.add_collection3d(surface)
+    ax.plot(*positions.T, color="0.35", linewidth=0.7, label="trajectory")
+    seen = list(dict.fromkeys(kinds))
+    kinds_arr = np.array(kinds)
+    for kind in seen:
+        mask = kinds_arr == kind
+        colour = kind_colour(kind, seen)
+        ax.scatter(
+            *positions[mask].T, color=colour, s=14, depthshade=False, label=f"{kind} ({int(mask.sum())})"
+        )
+        ax.quiver(
+            *positions[mask].T, *directions[mask].T, color=colour, linewidth=0.6, arrow_length_ratio=0.3
+        )
+    z_lo = min(lo[2], 0.0)
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_zlim(z_lo, hi[2])
+    ax.set_box_aspect((span[0], span[1], max(hi[2] - z_lo, 1e-6)))
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_zlabel("z (m)")
+    ax.view_init(elev=30, azim=-60)
+
+
+def draw_flight_top(ax, viewpoints, kinds, mesh=None, arrow_length_m: float | None = None):
+    """Draw a flight seen from above (x right, y up): mesh shaded by height, trajectory, scatter and
+    arrows (the horizontal part of each viewing direction) per kind. Arguments as ``draw_flight_3d``."""
+    viewpoints, kinds = _check_plan(viewpoints, kinds)
+    positions = viewpoints[:, :3]
+    lo, hi = _flight_extent(viewpoints, mesh)
+    span = np.maximum(hi - lo, 1e-6)
+    if arrow_length_m is None:
+        arrow_length_m = 0.04 * float(np.linalg.norm(span))
+    directions = forward_vectors(viewpoints[:, 3], viewpoints[:, 4]) * arrow_length_m
+    if mesh is not None and len(mesh.faces):
+        vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+        heights = vertices[faces, 2].mean(axis=1)
+        # Draw the highest triangles last so the roof covers the walls.
+        order = np.argsort(heights)
+        ax.tripcolor(
+            vertices[:, 0],
+            vertices[:, 1],
+            faces[order],
+            facecolors=heights[order],
+            cmap="Greys",
+            alpha=0.45,
+            edgecolors="none",
+            linewidth=0.0,
+            antialiased=False,
+            rasterized=True,
+            zorder=0,
+        )
+    ax.plot(positions[:, 0], positions[:, 1], color="0.35", linewidth=0.7, label="trajectory", zorder=1)
+    seen = list(dict.fromkeys(kinds))
+    kinds_arr = np.array(kinds)
+    for kind in seen:
+        mask = kinds_arr == kind
+        colour = kind_colour(kind, seen)
+        label = f"{kind} ({int(mask.sum())})"
+        ax.scatter(positions[mask, 0], positions[mask, 1], color=colour, s=14, label=label, zorder=3)
+        ax.quiver(
+            positions[mask, 0],
+            positions[mask, 1],
+            directions[mask, 0],
+            directions[mask, 1],
+            color=colour,
+            angles="xy",
+            scale_units="xy",
+            scale=1.0,
+            width=0.002,
+            zorder=2,
+        )
+    ax.set_aspect("equal")
+    margin = 0.05 * span[:2]
+    ax.set_xlim(lo[0] - margin[0], hi[0] + margin[0])
+    ax.set_ylim(lo[1] - margin[1], hi[1] + margin[1])
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+
+
+def plot_flight_path(
+    viewpoints: np.ndarray,
+    kinds: Sequence[str],
+    mesh=None,
+    title: str = "",
+    arrow_length_m: float | None = None,
+    mesh_label: str = "scene",
+) -> Figure:
+    """A flight over the scene: 3-D view (left) and top view (right).
+
+    Args:
+        viewpoints: (V, 5) ``x, y, z, yaw_deg, pitch_deg`` in flight order (metres, degrees).
+        kinds: V viewpoint kinds; each kind is one scatter (labelled with its count).
+        mesh: a ``trimesh.Trimesh`` drawn light under the flight (decimate it first), or None.
+        title: figure title.
+        arrow_length_m: length of the viewing-direction arrows in metres (default: 4 % of the
+            extent of viewpoints and mesh).
+        mesh_label: legend label of the mesh.
+
+    Returns:
+        The figure: ``axes[0]`` is 3-D, ``axes[1]`` the top view (x right, y up); each holds one
+        scatter per kind in order of first appearance.
+    """
+    fig = plt.figure(figsize=(12.0, 5.6))
+    ax3d = fig.add_subplot(1, 2, 1, projection="3d")
+    ax_top = fig.add_subplot(1, 2, 2)
+    draw_flight_3d(ax3d, viewpoints, kinds, mesh, arrow_length_m, mesh_label)
+    draw_flight_top(ax_top, viewpoints, kinds, mesh, arrow_length_m)
+    ax_top.set_title("top view")
+    ax_top.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def plot_flight_paths_by_scene(flights: Sequence[tuple], title: str = "") -> Figure:
+    """The paper's Figure 4: one 3-D flight per scene side by side.
+
+    Args:
+        flights: ``(subtitle, viewpoints (V, 5), kinds, mesh or None)`` per panel, in order.
+        title: figure title.
+
+    Returns:
+        The figure; ``axes[i]`` is the 3-D view of ``flights[i]``.
+    """
+    if not flights:
+        raise ValueError("no flights to draw")
+    fig = plt.figure(figsize=(5.0 * len(flights), 5.0))
+    for i, (subtitle, viewpoints, kinds, mesh) in enumerate(flights):
+        ax = fig.add_subplot(1, len(flights), i + 1, projection="3d")
+        draw_flight_3d(ax, viewpoints, kinds, mesh)
+        ax.set_title(subtitle)
+        ax.legend(loc="upper left", fontsize=7, frameon=False)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def plot_metrics_vs_images(
+    runs: pd.DataFrame, accuracy: str = "acc90_m", completeness: str = "comp_050"
+) -> Figure:
+    """Accuracy (top row) and completeness (bottom row) against image count; one column per scene.
+
+    Args:
+        runs: one row per run (``experiments.runs.runs_frame``); failed runs and runs without a
+            finite value are left out.
+        accuracy: accuracy column (metres), e.g. ``acc90_m``.
+        completeness: completeness column (percent), e.g. ``comp_050``.
+
+    Returns:
+        The figure; ``axes[row][col]`` holds one scatter per planner (label = method name) whose
+        offsets are (n_images, value) of that planner's runs in seed order.
+    """
+    for column in ("n_images", accuracy, completeness):
+        if column not in runs:
+            raise ValueError(f"runs have no {column!r} column (metrics.json fields: {sorted(runs.columns)})")
+    ok = runs[runs["status"] == "ok"]
+    scenes = sorted(runs["scene"].unique(), key=scene_sort_key)
+    planners = sorted(runs["planner"].unique(), key=method_sort_key)
+    colours = plt.get_cmap("tab10")
+    fig, axes = plt.subplots(2, len(scenes), figsize=(3.6 * len(scenes) + 1.6, 6.4), squeeze=False)
+    for col, scene in enumerate(scenes):
+        for row, (metric, label) in enumerate(
+            [(accuracy, _metric_label(accuracy)), (completeness, _metric_label(completeness))]
+        ):
+            ax = axes[row][col]
+            for i, planner in enumerate(planners):
+                cells = ok[(ok["scene"] == scene) & (ok["planner"] == planner)].sort_values("seed")
+                x = pd.to_numeric(cells["n_images"], errors="coerce").to_numpy(dtype=float)
+                y = pd.to_numeric(cells[metric], errors="coerce").to_numpy(dtype=float)
+                finite = np.isfinite(x) & np.isfinite(y)
+                if not finite.any():
+                    continue
+                ax.scatter(
+                    x[finite],
+                    y[finite],
+                    marker=method_marker(planner, planners),
+                    color=colours(i % 10),
+                    s=36,
+                    label=method_name(planner),
+                )
+            ax.set_xlabel("number of images")
+            ax.set_ylabel(label)
+            ax.grid(alpha=0.3)
+            if row == 0:
+                ax.set_title(scene_name(scene))
+    handles, labels = {}, {}
+    for ax in axes.flat:
+        for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
+            handles.setdefault(label, handle)
+            labels[label] = label
+    fig.legend(list(handles.values()), list(labels), loc="center right", frameon=False)
+    fig.tight_layout(rect=(0.0, 0.0, 0.86, 1.0))
+    return fig
+
+
+def _metric_label(column: str) -> str:
+    if column.startswith("acc") and column.endswith("_m"):
+        return f"error {column[3:-2]} % (m)"
+    if column.startswith("comp_"):
+        return f"completeness {int(column[5:]) / 1000:.3f} m (%)"
+    return column
+
+
+def plot_error_panel(images: dict[str, dict[str, Path]], title: str = "") -> Figure:
+    """Error images side by side: one column per method, one row per image name.
+
+    Args:
+        images: ``{method label: {image name: PNG path}}`` in column order.
+        title: figure title.
+
+    Returns:
+        The figure; ``axes[row][col]`` shows image ``row`` (names sorted) of method ``col`` or is
+        blank where that method has no such image.
+    """
+    if not images:
+        raise ValueError("no error images to show")
+    names = sorted({name for per_method in images.values() for name in per_method})
+    shapes = [plt.imread(p).shape for per_method in images.values() for p in per_method.values()]
+    aspect = float(np.median([s[0] / s[1] for s in shapes]))
+    fig, axes = plt.subplots(
+        len(names),
+        len(images),
+        squeeze=False,
+        figsize=(PANEL_CELL_IN * len(images), PANEL_CELL_IN * aspect * len(names) + 0.6),
+    )
+    for col, (method, per_method) in enumerate(images.items()):
+        for row, name in enumerate(names):
+            ax = axes[row][col]
+            ax.axis("off")
+            if name in per_method:
+                ax.imshow(plt.imread(per_method[name]))
+            if row == 0:
+                ax.set_title(method)
+            if col == 0 and len(names) > 1:
+                ax.text(
+                    -0.02, 0.5, Path(name).stem, transform=ax.transAxes, rotation=90, ha="right", va="center"
+                )
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def save_figure(fig: Figure, stem: Path, dpi: int = 200) -> list[Path]:
+    """Save ``fig`` as ``stem.png`` and ``stem.pdf`` atomically and close it; return the paths."""
+    paths = []
+    for suffix in (".png", ".pdf"):
+        path = stem.with_suffix(suffix)
+        paths.append(write_atomic(path, lambda p: fig.savefig(p, dpi=dpi, bbox_inches="tight")))
+    plt.close(fig)
+    return paths
+
+
+def _first_run_with_plan(runs: Sequence[Run]):
+    for run in sorted(runs, key=lambda r: r.seed):
+        plan = read_run_viewpoints(run.run_dir)
+        if plan is not None:
+            return run, plan
+    return None, None
+
+
+def error_images(run: Run, pattern: str) -> dict[str, Path]:
+    """The evaluation's images of a run matching ``pattern`` (relative to the run dir), by relative name."""
+    eval_dir = run.run_dir / "eval"
+    found = {}
+    for path in sorted(run.run_dir.glob(pattern)):
+        if path.is_file():
+            found[str(path.relative_to(eval_dir)) if path.is_relative_to(eval_dir) else path.name] = path
+    return found
+
+
+def make_figures(
+    run_paths: Sequence[str | Path],
+    out_dir: str | Path,
+    planners: Sequence[str] | None = None,
+    mesh_source: str = "ground_truth",
+    max_faces: int = 6000,
+    accuracy: str = "acc90_m",
+    completeness: str = "comp_050",
+    error_glob: str = "eval/**/*.png",
+    dpi: int = 200,
+) -> dict[str, list[Path]]:
+    """Draw every figure for the runs under ``run_paths`` into ``out_dir``.
+
+    Args:
+        run_paths: run or multirun directories.
+        out_dir: output directory.
+        planners: planners whose flight paths to draw (default: all).
+        mesh_source: ``ground_truth``, ``proxy`` or ``none``: the mesh under the flight paths
+            (the other one is used when the preferred one is not found).
+        max_faces: triangles kept of that mesh.
+        accuracy, completeness: the metrics of the metrics-vs-images figure.
+        error_glob: glob (relative to a run dir) of the evaluation's error images.
+        dpi: PNG resolution.
+
+    Returns:
+        ``{"flight_paths": [...], "errors": [...], "metrics_vs_images": [...]}`` files written.
+    """
+    if mesh_source not in ("ground_truth", "proxy", "none"):
+        raise ValueError(f"mesh_source must be ground_truth, proxy or none, got {mesh_source!r}")
+    runs = load_runs(run_paths)
+    out_dir = Path(out_dir)
+    written: dict[str, list[Path]] = {"flight_paths": [], "errors": [], "metrics_vs_images": []}
+    groups: dict[tuple[str, str], list[Run]] = {}
+    for run in runs:
+        groups.setdefault((run.scene, run.planner), []).append(run)
+
+    mesh_cache: dict[str, tuple] = {}
+    by_planner: dict[str, list[tuple]] = {}
+    for (scene, planner), cell_runs in tqdm(groups.items(), desc="flight paths", unit="cell"):
+        if planners is not None and planner not in planners:
+            continue
+        run, plan = _first_run_with_plan(cell_runs)
+        if run is None:
+            log.info("%s/%s: no plan/viewpoints.csv, no flight figure", scene, planner)
+            continue
+        mesh, label = None, ""
+        if mesh_source != "none":
+            if scene not in mesh_cache:
+                found, label = run_scene_mesh(run, prefer=mesh_source)
+                mesh_cache[scene] = (decimate_mesh(found, max_faces) if found is not None else None, label)
+            mesh, label = mesh_cache[scene]
+        viewpoints, kinds = plan
+        length = polyline_length(viewpoints[:, :3])
+        title = (
+            f"{method_name(planner)}: {scene_name(scene)} (seed {run.seed}), {len(viewpoints)} viewpoints, "
+            f"{length:.0f} m flight"
+        )
+        fig = plot_flight_path(viewpoints, kinds, mesh, title=title, mesh_label=label or "scene")
+        written["flight_paths"] += save_figure(fig, out_dir / f"flight_{scene}_{planner}", dpi)
+        subtitle = f"{scene_name(scene)}: {len(viewpoints)} views, {length:.0f} m"
+        by_planner.setdefault(planner, []).append((subtitle, viewpoints, kinds, mesh))
+    for planner, flights in by_planner.items():
+        if len(flights) > 1:
+            fig = plot_flight_paths_by_scene(flights, title=f"Flight paths: {method_name(planner)}")
+            written["flight_paths"] += save_figure(fig, out_dir / f"flight_paths_{planner}", dpi)
+
+    for scene in sorted({s for s, _ in groups}, key=scene_sort_key):
+        columns: dict[str, dict[str, Path]] = {}
+        for planner in sorted({p for s, p in groups if s == scene}, key=method_sort_key):
+            for run in sorted(groups[(scene, planner)], key=lambda r: r.seed):
+                found = error_images(run, error_glob)
+                if found:
+                    columns[f"{method_name(planner)} (seed {run.seed})"] = found
+                    break
+        if columns:
+            fig = plot_error_panel(columns, title=f"Reconstruction error: {scene_name(scene)}")
+            written["errors"] += save_figure(fig, out_dir / f"errors_{scene}", dpi)
+        else:
+            log.info("%s: no evaluation images matching %s, no error panel", scene, error_glob)
+
+    frame = runs_frame(runs)
+    if {"n_images", accuracy, completeness} <= set(frame.columns):
+        fig = plot_metrics_vs_images(frame, accuracy, completeness)
+        written["metrics_vs_images"] += save_figure(fig, out_dir / "metrics_vs_images", dpi)
+    else:
+        log.warning("runs lack n_images/%s/%s: no metrics-vs-images figure", accuracy, completeness)
+    return written
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Command line: ``python -m experiments.figures DIR... --out OUT``; returns the exit status."""
+    parser = argparse.ArgumentParser(prog="python -m experiments.figures", description=__doc__.split("\n")[0])
+    parser.add_argument(
+        "dirs", nargs="+", type=Path, help="run or multirun directories (searched recursively)"
+    )
+    parser.add_argument("--out", type=Path, required=True, help="directory for the figures")
+    parser.add_argument("--planners", nargs="+", help="planners whose flight paths to draw (default: all)")
+    parser.add_argument(
+        "--mesh",
+        choices=("ground_truth", "proxy", "none"),
+        default="ground_truth",
+        help="mesh drawn under the flight paths",
+    )
+    parser.add_argument("--max-faces", type=int, default=6000, help="triangles kept of that mesh")
+    parser.add_argument("--accuracy", default="acc90_m", help="accuracy metric of the scatter figure")
+    parser.add_argument(
+        "--completeness", default="comp_050", help="completeness metric of the scatter figure"
+    )
+    parser.add_argument("--error-glob", default="eval/**/*.png", help="error images, relative to a run dir")
+    parser.add_argument("--dpi", type=int, default=200)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    try:
+        written = make_figures(
+            args.dirs,
+            args.out,
+            args.planners,
+            args.mesh,
+            args.max_faces,
+            args.accuracy,
+            args.completeness,
+            args.error_glob,
+            args.dpi,
+        )
+    except (RunDirectoryError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    for kind, paths in written.items():
+        print(f"{kind}: {len(paths)} files" + (f" ({paths[0].parent})" if paths else ""))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,428 @@
+"""The paper's Table I (accuracy, completeness) and Table II (images, alignment time) from run directories.
+
+    python -m experiments.tables multirun/2026-11-23_06-00-00 outputs/tomb --out tables/
+
+writes ``table1.{md,tex,csv}``, ``table2.{md,tex,csv}``, ``tables.md`` (both, for reading),
+``all_metrics.csv`` (every numeric metric summarised) and ``runs.csv`` (one row per run).
+Across seeds a cell shows mean ± sample standard deviation (ddof 1) over the runs that succeeded.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import logging
+import math
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from experiments.runs import (
+    RunDirectoryError,
+    load_runs,
+    method_sort_key,
+    runs_frame,
+    scene_name,
+    scene_sort_key,
+)
+from scene.io import write_text_atomic
+
+log = logging.getLogger(__name__)
+
+# Bibliography keys of the baselines in the paper's LaTeX (Table II cites them beside the name).
+METHOD_CITATIONS = {"smith": "Smith2018", "yan": "Yan2021"}
+
+# Longest error text in a table's footnote (the CSVs keep it whole).
+NOTE_MAX_CHARS = 240
+
+SUMMARY_COLUMNS = (
+    "scene",
+    "planner",
+    "method",
+    "metric",
+    "label",
+    "mean",
+    "std",
+    "n",
+    "n_runs",
+    "n_failed",
+    "best",
+    "errors",
+)
+
+
+@dataclass(frozen=True)
+class MetricSpec:
+    """One column of a table.
+
+    Attributes:
+        column: field of ``metrics.json``.
+        label: Markdown/CSV header.
+        latex: LaTeX header.
+        decimals: digits after the point when shown (bolding compares the shown values).
+        better: ``"lower"``, ``"higher"`` or None (no bolding).
+        scale: factor from the stored unit to the shown one (seconds -> minutes: 1/60).
+        thousands: show a thousands separator (3,795).
+    """
+
+    column: str
+    label: str
+    latex: str
+    decimals: int
+    better: str | None = None
+    scale: float = 1.0
+    thousands: bool = False
+
+    def format(self, value: float) -> str:
+        """``value`` (already scaled) as shown in the table."""
+        return f"{value:,.{self.decimals}f}" if self.thousands else f"{value:.{self.decimals}f}"
+
+
+TABLE_I = (
+    MetricSpec("acc90_m", "Error 90% (m)", r"\makecell{Error\\90\% (m)}", 3, "lower"),
+    MetricSpec("acc95_m", "Error 95% (m)", r"\makecell{Error\\95\% (m)}", 3, "lower"),
+    MetricSpec("comp_050", "Comp. 0.050m (%)", r"\makecell{Comp.\\0.050m (\%)}", 2, "higher"),
+    MetricSpec("comp_075", "Comp. 0.075m (%)", r"\makecell{Comp.\\0.075m (\%)}", 2, "higher"),
+)
+TABLE_II = (
+    MetricSpec("n_images", "Number of images", "Number of Images", 0, thousands=True),
+    MetricSpec(
+        "align_time_s",
+        "Alignment time (minutes)",
+        r"\makecell{Alignment\\time (minutes)}",
+        2,
+        scale=1.0 / 60.0,
+    ),
+)
+TABLE_I_CAPTION = "Reconstruction accuracy and completeness results for the three scenes."
+TABLE_II_CAPTION = "Number of input images and alignment time for each flight path method."
+
+
+def summarise(runs: pd.DataFrame, specs: Sequence[MetricSpec]) -> pd.DataFrame:
+    """Mean, spread and best flag of each metric per (scene, planner), in table order.
+
+    Args:
+        runs: one row per run (``experiments.runs.runs_frame``): scene, planner, method, seed,
+            status, error and the metric columns.
+        specs: the metrics to summarise.
+
+    Returns:
+        A tidy frame with ``SUMMARY_COLUMNS``: one row per (scene, planner, metric). ``mean`` and
+        ``std`` (sample, ddof 1; NaN below two runs) are in the shown unit over the successful runs
+        with a finite value, ``n`` counts them, ``n_runs``/``n_failed`` count the group's runs and
+        failures, ``errors`` lists the failed seeds' errors, ``best`` marks the best shown value of
+        the scene for metrics with a direction (ties all marked; only where two methods have a value).
+    """
+    missing = {"scene", "planner", "seed", "status"} - set(runs.columns)
+    if missing:
+        raise ValueError(f"run records lack {sorted(missing)}")
+    rows = []
+    groups = sorted(
+        runs.groupby(["scene", "planner"], sort=False),
+        key=lambda g: (scene_sort_key(g[0][0]), method_sort_key(g[0][1])),
+    )
+    for (scene, planner), group in groups:
+        ok = group[group["status"] == "ok"]
+        failed = group[group["status"] != "ok"]
+        errors = _error_summary(failed)
+        method = group["method"].iloc[0] if "method" in group else planner
+        for spec in specs:
+            if spec.column in ok:
+                values = pd.to_numeric(ok[spec.column], errors="coerce").to_numpy(dtype=float) * spec.scale
+            else:
+                values = np.array([], dtype=float)
+            values = values[np.isfinite(values)]
+            rows.append(
+                {
+                    "scene": scene,
+                    "planner": planner,
+                    "method": method,
+                    "metric": spec.column,
+                    "label": spec.label,
+                    "mean": float(values.mean()) if len(values) else math.nan,
+                    "std": float(values.std(ddof=1)) if len(values) > 1 else math.nan,
+                    "n": len(values),
+                    "n_runs": len(group),
+                    "n_failed": len(failed),
+                    "best": False,
+                    "errors": errors,
+                }
+            )
+    summary = pd.DataFrame(rows, columns=list(SUMMARY_COLUMNS))
+    for spec in specs:
+        if spec.better is None:
+            continue
+        for _, cells in summary[summary["metric"] == spec.column].groupby("scene", sort=False):
+            # Compare the values as printed, so two cells that read the same are both bold.
+            shown = cells.loc[cells["n"] > 0, "mean"].map(
+                lambda v, s=spec: float(s.format(v).replace(",", ""))
+            )
+            if len(shown) < 2:
+                continue
+            target = shown.min() if spec.better == "lower" else shown.max()
+            summary.loc[shown.index[shown == target], "best"] = True
+    return summary
+
+
+def _error_summary(failed: pd.DataFrame) -> str:
+    by_error: dict[str, list[int]] = {}
+    for seed, error in zip(failed["seed"], failed.get("error", pd.Series([""] * len(failed))), strict=True):
+        text = " ".join(str(error or "unknown error").split())
+        by_error.setdefault(text, []).append(int(seed))
+    parts = []
+    for error, seeds in by_error.items():
+        label = "seed" if len(seeds) == 1 else "seeds"
+        parts.append(f"{label} {', '.join(str(s) for s in sorted(seeds))}: {error}")
+    return "; ".join(parts)
+
+
+def read_summary_csv(path: str | Path) -> pd.DataFrame:
+    """Read a table CSV written by ``write_tables`` back into the frame ``summarise`` returned."""
+    frame = pd.read_csv(path, keep_default_na=False, na_values={"mean": [""], "std": [""]})
+    missing = set(SUMMARY_COLUMNS) - set(frame.columns)
+    if missing:
+        raise ValueError(f"{path}: not a table CSV (missing {sorted(missing)})")
+    frame = frame[list(SUMMARY_COLUMNS)]
+    frame = frame.astype({"mean": float, "std": float, "n": int, "n_runs": int, "n_failed": int})
+    frame["best"] = frame["best"].astype(str).str.lower() == "true"
+    for column in ("scene", "planner", "method", "metric", "label", "errors"):
+        frame[column] = frame[column].astype(str)
+    return frame
+
+
+def summary_csv(summary: pd.DataFrame) -> str:
+    """The CSV text of a summary (full float precision; read back with ``read_summary_csv``)."""
+    buf = io.StringIO()
+    summary.to_csv(buf, index=False, lineterminator="\n")
+    return buf.getvalue()
+
+
+@dataclass
+class _Cell:
+    text: str
+    best: bool
+
+
+class _Layout:
+    """Rows (scene, planner) of a table with their shown cells and footnote markers."""
+
+    def __init__(self, summary: pd.DataFrame, specs: Sequence[MetricSpec]):
+        self.specs = list(specs)
+        self.show_runs = bool((summary["n_runs"] > 1).any())
+        self.rows: list[dict] = []
+        self.notes: list[tuple[str, str]] = []
+        for (scene, planner), cells in summary.groupby(["scene", "planner"], sort=False):
+            by_metric = {row.metric: row for row in cells.itertuples()}
+            first = cells.iloc[0]
+            marker = ""
+            if first["n_failed"] > 0:
+                marker = _note_marker(len(self.notes))
+                errors = first["errors"]
+                if len(errors) > NOTE_MAX_CHARS:
+                    errors = errors[: NOTE_MAX_CHARS - 1] + "…"
+                self.notes.append((marker, f"{first['method']} on {scene_name(scene)}: {errors}"))
+            metric_cells = [self._cell(by_metric.get(spec.column), spec) for spec in self.specs]
+            n_ok = int(first["n_runs"] - first["n_failed"])
+            runs = f"{n_ok}" if first["n_failed"] == 0 else f"{n_ok}/{int(first['n_runs'])}"
+            self.rows.append(
+                {
+                    "scene": scene,
+                    "planner": planner,
+                    "method": first["method"],
+                    "marker": marker,
+                    "runs": runs,
+                    "cells": metric_cells,
+                }
+            )
+
+    @staticmethod
+    def _cell(row, spec: MetricSpec) -> _Cell:
+        if row is None or row.n == 0:
+            failed = row is not None and row.n_failed > 0 and row.n_failed == row.n_runs
+            return _Cell("failed" if failed else "n/a", False)
+        text = spec.format(row.mean)
+        if row.n > 1:
+            text += f" ± {spec.format(row.std)}"
+        return _Cell(text, bool(row.best))
+
+    def scenes(self) -> list[tuple[str, list[dict]]]:
+        grouped: dict[str, list[dict]] = {}
+        for row in self.rows:
+            grouped.setdefault(row["scene"], []).append(row)
+        return list(grouped.items())
+
+
+def _note_marker(index: int) -> str:
+    letters = "abcdefghijklmnopqrstuvwxyz"
+    return letters[index % 26] * (index // 26 + 1)
+
+
+def to_markdown(summary: pd.DataFrame, specs: Sequence[MetricSpec], title: str = "") -> str:
+    """A Markdown table of ``summary`` (best cells in bold, failures as footnotes)."""
+    layout = _Layout(summary, specs)
+    header = ["Scene", "Method"] + (["Runs"] if layout.show_runs else []) + [s.label for s in specs]
+    align = [":--", ":--"] + (["--:"] if layout.show_runs else []) + ["--:"] * len(specs)
+    lines = [f"**{title}**", ""] if title else []
+    lines += ["| " + " | ".join(header) + " |", "| " + " | ".join(align) + " |"]
+    for scene, rows in layout.scenes():
+        for i, row in enumerate(rows):
+            method = row["method"] + (f" ({row['marker']})" if row["marker"] else "")
+            cells = [f"**{c.text}**" if c.best else c.text for c in row["cells"]]
+            lead = [scene_name(scene) if i == 0 else "", method] + ([row["runs"]] if layout.show_runs else [])
+            lines.append("| " + " | ".join(lead + cells) + " |")
+    if layout.show_runs:
+        lines += [
+            "",
+            "Cells: mean ± sample standard deviation over the runs (seeds) that succeeded; "
+            "Runs: succeeded/all.",
+        ]
+    if layout.notes:
+        lines.append("")
+        lines += [f"({marker}) {text}  " for marker, text in layout.notes]
+    return "\n".join(lines) + "\n"
+
+
+def latex_escape(text: str) -> str:
+    """``text`` with LaTeX's special characters escaped."""
+    replacements = {
+        "\\": r"\textbackslash{}",
+        "&": r"\&",
+        "%": r"\%",
+        "$": r"\$",
+        "#": r"\#",
+        "_": r"\_",
+        "{": r"\{",
+        "}": r"\}",
+        "~": r"\textasciitilde{}",
+        "^": r"\textasciicircum{}",
+        "<": r"\textless{}",
+        ">": r"\textgreater{}",
+        "|": r"\textbar{}",
+        "…": r"\ldots{}",
+    }
+    return "".join(replacements.get(ch, ch) for ch in str(text))
+
+
+def to_latex(summary: pd.DataFrame, specs: Sequence[MetricSpec], caption: str, label: str) -> str:
+    """A booktabs + multirow LaTeX table of ``summary`` in the paper's layout (needs makecell too)."""
+    layout = _Layout(summary, specs)
+    columns = "ll" + ("r" if layout.show_runs else "") + "r" * len(specs)
+    if layout.show_runs:
+        caption += r" Mean $\pm$ sample standard deviation over the seeds that succeeded (Runs)."
+    lines = [
+        r"% Generated by experiments.tables; needs \usepackage{booktabs,multirow,makecell}",
+        r"\begin{table}[t]",
+        r"\centering",
+        rf"\caption{{{caption}}}",
+        rf"\label{{{label}}}",
+        r"\setlength{\tabcolsep}{4pt}",
+        rf"\begin{{tabular}}{{{columns}}}",
+        r"\toprule",
+        "Scene & Method"
+        + (" & Runs" if layout.show_runs else "")
+        + "".join(f"\n& {s.latex}" for s in specs)
+        + r" \\",
+    ]
+    for scene, rows in layout.scenes():
+        lines.append(r"\midrule")
+        lines.append(rf"\multirow{{{len(rows)}}}{{*}}{{{latex_escape(scene_name(scene))}}}")
+        for row in rows:
+            method = latex_escape(row["method"])
+            if row["planner"] in METHOD_CITATIONS:
+                method += rf"~\cite{{{METHOD_CITATIONS[row['planner']]}}}"
+            if row["marker"]:
+                method += rf"\textsuperscript{{{row['marker']}}}"
+            cells = [latex_escape(c.text).replace("±", r"$\pm$") for c in row["cells"]]
+            cells = [rf"\textbf{{{t}}}" if c.best else t for t, c in zip(cells, row["cells"], strict=True)]
+            runs = [row["runs"]] if layout.show_runs else []
+            lines.append("& " + " & ".join([method, *runs, *cells]) + r" \\")
+    lines += [r"\bottomrule", r"\end{tabular}"]
+    if layout.notes:
+        lines.append(r"\par\smallskip\footnotesize\raggedright")
+        lines += [rf"\textsuperscript{{{m}}}~{latex_escape(t)}\\" for m, t in layout.notes]
+    lines.append(r"\end{table}")
+    return "\n".join(lines) + "\n"
+
+
+def build_tables(run_paths: Sequence[str | Path]) -> dict[str, pd.DataFrame]:
+    """Load the runs under ``run_paths`` and summarise them.
+
+    Returns:
+        ``{"runs": per-run frame, "table1": Table I summary, "table2": Table II summary,
+        "all_metrics": summary of every numeric metric}``.
+
+    Raises:
+        RunDirectoryError: a path holds no run or a run breaks the contract.
+    """
+    runs = runs_frame(load_runs(run_paths))
+    return {
+        "runs": runs,
+        "table1": summarise(runs, TABLE_I),
+        "table2": summarise(runs, TABLE_II),
+        "all_metrics": summarise(runs, _numeric_specs(runs)),
+    }
+
+
+def _numeric_specs(runs: pd.DataFrame) -> list[MetricSpec]:
+    skip = {"seed"}
+    specs = []
+    for column in runs.columns:
+        if column in skip or runs[column].dtype == bool:
+            continue
+        values = pd.to_numeric(runs[column], errors="coerce")
+        if values.notna().any() and values.notna().sum() == runs[column].notna().sum():
+            specs.append(MetricSpec(column, column, latex_escape(column), 4))
+    return specs
+
+
+def write_tables(tables: dict[str, pd.DataFrame], out_dir: str | Path) -> list[Path]:
+    """Write the tables of ``build_tables`` into ``out_dir`` atomically; return the files written."""
+    out_dir = Path(out_dir)
+    written = []
+    table1_md = to_markdown(tables["table1"], TABLE_I, "Table I. " + TABLE_I_CAPTION)
+    table2_md = to_markdown(tables["table2"], TABLE_II, "Table II. " + TABLE_II_CAPTION)
+    files = {
+        "table1.md": table1_md,
+        "table1.tex": to_latex(tables["table1"], TABLE_I, TABLE_I_CAPTION, "tab:recon_results"),
+        "table1.csv": summary_csv(tables["table1"]),
+        "table2.md": table2_md,
+        "table2.tex": to_latex(tables["table2"], TABLE_II, TABLE_II_CAPTION, "tab:align_results"),
+        "table2.csv": summary_csv(tables["table2"]),
+        "tables.md": table1_md + "\n" + table2_md,
+        "all_metrics.csv": summary_csv(tables["all_metrics"]),
+        "runs.csv": tables["runs"].to_csv(index=False, lineterminator="\n"),
+    }
+    for name, text in files.items():
+        written.append(write_text_atomic(out_dir / name, text))
+    return written
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Command line: ``python -m experiments.tables DIR... --out OUT``; returns the exit status."""
+    parser = argparse.ArgumentParser(prog="python -m experiments.tables", description=__doc__.split("\n")[0])
+    parser.add_argument(
+        "dirs", nargs="+", type=Path, help="run or multirun directories (searched recursively)"
+    )
+    parser.add_argument("--out", type=Path, required=True, help="directory for the tables")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    try:
+        tables = build_tables(args.dirs)
+    except RunDirectoryError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    written = write_tables(tables, args.out)
+    runs = tables["runs"]
+    n_failed = int((runs["status"] != "ok").sum())
+    print(f"{len(runs)} runs ({n_failed} failed) -> {len(written)} files in {args.out}")
+    print(to_markdown(tables["table1"], TABLE_I, "Table I"))
+    print(to_markdown(tables["table2"], TABLE_II, "Table II"))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,234 @@
+"""Lawnmower (boustrophedon grid) flights: the exploratory flight that builds the proxy, and a planner.
+
+A grid of camera positions at a fixed altitude covers the structure's footprint plus a margin. The
+spacing between images along a flight line and between lines follows from the configured front and
+side overlap of the nadir footprints on flat ground at z = 0:
+
+    along-track footprint  = 2 * altitude * tan(vfov / 2)   (the image height points along the track)
+    across-track footprint = 2 * altitude * tan(hfov / 2)
+    spacing                = (1 - overlap) * footprint
+
+The spacing is kept exactly (the grid is centred on the region and may overhang it), so the flown
+overlap on flat ground equals the configured one. Two camera modes:
+
+- ``centre``: every camera aims at the structure's centre (the paper's exploratory flight, "viewpoints
+  directed towards the object centre"); pitch is clipped to the gimbal range.
+- ``nadir``: every camera looks straight down, the image's up axis along the direction of travel.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping
+
+import numpy as np
+import trimesh
+
+from planner.base import Plan, PlanningError
+from scene.base import Box
+from scene.camera import Intrinsics, yaw_pitch_from_direction
+
+DEFAULTS = {
+    "mode": "centre",  # centre | nadir
+    "altitude_m": None,  # flight height above the ground z = 0; None: structure top + altitude_above_top_m
+    "altitude_above_top_m": 15.0,
+    "front_overlap": 0.8,
+    "side_overlap": 0.8,
+    "margin_m": None,  # grid region = structure footprint grown by this; None: margin_footprints x footprint
+    "margin_footprints": 0.5,
+    "flight_direction": "auto",  # auto (along the longer side of the region) | x | y
+    "aim_height_fraction": 0.5,  # centre mode: aim at this fraction of the structure height
+    "min_clearance_above_top_m": 2.0,  # refuse flights lower than structure top + this
+    "pitch_min_deg": -90.0,
+    "pitch_max_deg": 30.0,
+    "structure_min_height_m": 0.5,  # plan(): proxy vertices above this height form the structure
+}
+
+MODES = ("centre", "nadir")
+
+
+def _merged(params: Mapping | None) -> dict:
+    merged = dict(DEFAULTS)
+    if params:
+        unknown = sorted(set(params) - set(DEFAULTS) - {"name", "_target_"})
+        if unknown:
+            raise ValueError(f"lawnmower: unknown parameter(s) {unknown}; known: {sorted(DEFAULTS)}")
+        merged.update({k: v for k, v in params.items() if k in DEFAULTS})
+    return merged
+
+
+def _check_overlap(name: str, value) -> float:
+    value = float(value)
+    if not (0.0 <= value < 1.0) or not math.isfinite(value):
+        raise ValueError(f"lawnmower: {name} must lie in [0, 1) (a fraction, 0.8 = 80 %), got {value}")
+    return value
+
+
+def footprint_m(intrinsics: Intrinsics, height_m: float) -> tuple[float, float]:
+    """Nadir footprint (across-track width, along-track length) in metres at ``height_m`` above ground."""
+    half_h = math.tan(math.radians(intrinsics.hfov_deg) / 2.0)
+    half_v = 0.5 * intrinsics.height / intrinsics.focal_px
+    return 2.0 * height_m * half_h, 2.0 * height_m * half_v
+
+
+def grid_positions(
+    region_lo_xy,
+    region_hi_xy,
+    altitude_m: float,
+    spacing_along_m: float,
+    spacing_across_m: float,
+    direction: str = "x",
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Boustrophedon grid of camera positions covering a rectangle at a fixed altitude.
+
+    Args:
+        region_lo_xy, region_hi_xy: corners (2,) of the region in metres.
+        altitude_m: flight height in metres.
+        spacing_along_m: distance between consecutive images on a line (m).
+        spacing_across_m: distance between lines (m).
+        direction: ``x`` or ``y``, the axis the lines run along.
+
+    Returns:
+        positions (N, 3) in flight order, heading (N,) in degrees (direction of travel), line index (N,).
+    """
+    lo = np.asarray(region_lo_xy, dtype=float)
+    hi = np.asarray(region_hi_xy, dtype=float)
+    if direction not in ("x", "y"):
+        raise ValueError(f"lawnmower: flight_direction must be auto, x or y, got {direction!r}")
+    along, across = (0, 1) if direction == "x" else (1, 0)
+    extent = hi - lo
+    centre = 0.5 * (lo + hi)
+    n_along = int(math.ceil(extent[along] / spacing_along_m - 1e-9)) + 1
+    n_lines = int(math.ceil(extent[across] / spacing_across_m - 1e-9)) + 1
+    offsets_along = (np.arange(n_along) - 0.5 * (n_along - 1)) * spacing_along_m
+    offsets_across = (np.arange(n_lines) - 0.5 * (n_lines - 1)) * spacing_across_m
+    forward_heading = 0.0 if direction == "x" else 90.0
+    positions, headings, lines = [], [], []
+    for line, off_across in enumerate(offsets_across):
+        order = offsets_along if line % 2 == 0 else offsets_along[::-1]
+        xy = np.empty((n_along, 2))
+        xy[:, along] = centre[along] + order
+        xy[:, across] = centre[across] + off_across
+        positions.append(np.column_stack([xy, np.full(n_along, float(altitude_m))]))
+        headings.append(np.full(n_along, forward_heading if line % 2 == 0 else forward_heading + 180.0))
+        lines.append(np.full(n_along, line))
+    return np.concatenate(positions), np.concatenate(headings), np.concatenate(lines)
+
+
+def plan_exploration(
+    structure_bounds: Box, intrinsics: Intrinsics, params: Mapping | None, seed: int = 0
+) -> Plan:
+    """The lawnmower flight over a structure (the exploratory flight that builds the proxy).
+
+    Args:
+        structure_bounds: box around the structure (m); the grid covers its footprint plus a margin.
+        intrinsics: the survey camera.
+        params: see ``DEFAULTS`` (overlaps as fractions, lengths in metres, angles in degrees).
+        seed: unused (the flight is deterministic); kept for the planner interface.
+
+    Returns:
+        A ``Plan`` with kinds ``nadir`` or ``grid`` (centre-aimed), in boustrophedon order.
+    """
+    del seed
+    t0 = time.perf_counter()
+    p = _merged(params)
+    mode = str(p["mode"])
+    if mode not in MODES:
+        raise ValueError(f"lawnmower: mode must be one of {MODES}, got {mode!r}")
+    front = _check_overlap("front_overlap", p["front_overlap"])
+    side = _check_overlap("side_overlap", p["side_overlap"])
+    top = float(structure_bounds.hi[2])
+    min_altitude = top + float(p["min_clearance_above_top_m"])
+    if p["altitude_m"] is None:
+        above = float(p["altitude_above_top_m"])
+        if not above > float(p["min_clearance_above_top_m"]):
+            raise ValueError(
+                f"lawnmower: altitude_above_top_m = {above} m must exceed "
+                f"min_clearance_above_top_m = {p['min_clearance_above_top_m']} m"
+            )
+        altitude = top + above
+    else:
+        altitude = float(p["altitude_m"])
+        if not altitude > min_altitude:
+            raise ValueError(
+                f"lawnmower: altitude_m = {altitude} m is below the structure top {top:.2f} m plus "
+                f"min_clearance_above_top_m = {p['min_clearance_above_top_m']} m; fly higher"
+            )
+    across_w, along_l = footprint_m(intrinsics, altitude)
+    lo_xy = structure_bounds.lo_array[:2]
+    hi_xy = structure_bounds.hi_array[:2]
+    extent = hi_xy - lo_xy
+    if extent.max() <= min(across_w, along_l):
+        raise PlanningError(
+            f"lawnmower: the structure ({extent[0]:.1f} x {extent[1]:.1f} m) fits inside one image "
+            f"footprint ({across_w:.1f} x {along_l:.1f} m) at altitude_m = {altitude:.1f} m; "
+            "lower altitude_m / altitude_above_top_m"
+        )
+    margin = (
+        float(p["margin_m"])
+        if p["margin_m"] is not None
+        else float(p["margin_footprints"]) * max(across_w, along_l)
+    )
+    if margin < 0:
+        raise ValueError(f"lawnmower: margin_m must be >= 0, got {margin}")
+    region_lo, region_hi = lo_xy - margin, hi_xy + margin
+    direction = str(p["flight_direction"])
+    if direction == "auto":
+        direction = "x" if (region_hi - region_lo)[0] >= (region_hi - region_lo)[1] else "y"
+    spacing_along = (1.0 - front) * along_l
+    spacing_across = (1.0 - side) * across_w
+    positions, headings, lines = grid_positions(
+        region_lo, region_hi, altitude, spacing_along, spacing_across, direction
+    )
+    if mode == "nadir":
+        yaw = headings
+        pitch = np.full(len(positions), -90.0)
+        kinds = ["nadir"] * len(positions)
+    else:
+        target = structure_bounds.center.copy()
+        target[2] = structure_bounds.lo[2] + float(p["aim_height_fraction"]) * structure_bounds.extent[2]
+        direction_vec = target - positions
+        yaw, pitch = yaw_pitch_from_direction(direction_vec)
+        # Directly above the target the yaw is undefined: keep the direction of travel there.
+        overhead = np.linalg.norm(direction_vec[:, :2], axis=1) < 1e-6
+        yaw = np.where(overhead, headings, yaw)
+        pitch = np.clip(pitch, float(p["pitch_min_deg"]), float(p["pitch_max_deg"]))
+        kinds = ["grid"] * len(positions)
+    viewpoints = np.column_stack([positions, np.mod(yaw + 180.0, 360.0) - 180.0, pitch])
+    info = {
+        "parameters": {**p, "mode": mode, "flight_direction": direction},
+        "altitude_m": altitude,
+        "footprint_across_m": across_w,
+        "footprint_along_m": along_l,
+        "spacing_along_m": spacing_along,
+        "spacing_across_m": spacing_across,
+        "n_lines": int(lines.max()) + 1,
+        "region_lo_xy": region_lo.tolist(),
+        "region_hi_xy": region_hi.tolist(),
+        "structure_bounds": structure_bounds.as_dict(),
+        "timings_s": {"total": time.perf_counter() - t0},
+    }
+    return Plan(viewpoints=viewpoints, kinds=kinds, planner="lawnmower", info=info)
+
+
+def structure_bounds_from_proxy(proxy: trimesh.Trimesh, min_height_m: float = 0.5) -> Box:
+    """Box around the proxy's structure: its vertices higher than ``min_height_m`` above the ground.
+
+    Falls back to the whole proxy's bounds when no vertex is that high (a flat proxy).
+    """
+    vertices = np.asarray(proxy.vertices, dtype=float)
+    if len(vertices) == 0 or len(proxy.faces) == 0:
+        raise PlanningError("lawnmower: the proxy mesh is empty")
+    high = vertices[vertices[:, 2] > float(min_height_m)]
+    box = Box.from_points(high if len(high) else vertices)
+    lo = box.lo_array.copy()
+    lo[2] = min(lo[2], 0.0)
+    return Box(tuple(lo.tolist()), box.hi)
+
+
+def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: int) -> Plan:
+    """``planner=lawnmower``: the lawnmower flight over the proxy's structure (see ``plan_exploration``)."""
+    p = _merged(params)
+    bounds = structure_bounds_from_proxy(proxy, float(p["structure_min_height_m"]))
+    return plan_exploration(bounds, intrinsics, p, seed)

@@ -1,0 +1,392 @@
+"""Incremental evaluation of the global objective R (Eq. 10) over a changing viewpoint set.
+
+``ObjectiveState`` holds the (V, P) observations of the current viewpoints, the per-point
+aggregates (observer count, sum of unit viewing directions, best frontality, best distance score,
+point score) and the (V, V) common-visible-point counts. A proposed change (remove some rows, add
+m new rows; many alternative proposals at once, as a CMA-ES population) is scored by touching only
+
+* the points seen by a removed or added row (their R_point is re-reduced over the visible pairs
+  of the kept rows plus the new rows; every other point keeps its cached score), and
+* the overlap rows and columns of the new viewpoints (the top-k lists and connected components
+  of the kept viewpoints among themselves are computed once per proposal batch).
+
+The numbers equal ``planner.heuristics.global_score`` (float32 geometry, float64 sums).
+
+Two point-score modes: ``detail`` (Eq. 1-5) and ``coverage`` (``coverage_point_scores``). Rows may
+be flagged not to count for the point scores (the detail viewpoints during the coverage pass):
+they still count for the viewpoint-set terms.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from planner.heuristics import HeuristicParams, distance_score, smith_w1, smith_w3
+from planner.visibility import Observations
+
+
+@dataclass
+class Proposal:
+    """Scores of a batch of alternative changes (arrays (L,) over the L alternatives)."""
+
+    R: np.ndarray
+    R_point_sum: np.ndarray
+    visibility: np.ndarray
+    overlap: np.ndarray
+    connectivity: np.ndarray
+
+    @property
+    def R_viewpoint(self) -> np.ndarray:
+        return (self.visibility + self.overlap + self.connectivity) / 3.0
+
+
+class ObjectiveState:
+    """R of a viewpoint set, updatable by rows.
+
+    Args:
+        params: heuristic constants (the distance range is the one of the pass).
+        n_points: P.
+        mode: ``detail`` or ``coverage`` point scores.
+    """
+
+    def __init__(self, params: HeuristicParams, n_points: int, mode: str = "detail") -> None:
+        if mode not in ("detail", "coverage"):
+            raise ValueError(f"mode must be 'detail' or 'coverage', got {mode!r}")
+        self.params = params
+        self.mode = mode
+        self.n_points = int(n_points)
+        self.obs = Observations.empty(self.n_points)
+        self.point_rows = np.zeros(0, bool)
+        self.front = np.zeros((0, self.n_points), np.float32)
+        self.dscore = np.zeros((0, self.n_points), np.float32)
+        self.common = np.zeros((0, 0), np.int64)
+        self.n_visible = np.zeros(0, np.int64)
+        self.point_score = np.zeros(self.n_points)
+        self.count = np.zeros(self.n_points, np.int64)
+        self.evaluations = 0
+        self._parts = self._full_parts()
+
+    # ----------------------------------------------------------------------------------- basics
+    @property
+    def n_viewpoints(self) -> int:
+        return len(self.obs)
+
+    @property
+    def visible(self) -> np.ndarray:
+        return self.obs.visible
+
+    @property
+    def R(self) -> float:
+        return self._parts["R"]
+
+    def parts(self) -> dict[str, float]:
+        """Current R and its parts (``R_point_sum``, ``visibility``, ``overlap``, ``connectivity``,
+        ``R_viewpoint``)."""
+        return dict(self._parts)
+
+    def _row_scores(self, obs: Observations) -> tuple[np.ndarray, np.ndarray]:
+        p = self.params
+        front = np.where(obs.visible, np.maximum(obs.cos_incidence, 0.0), 0.0).astype(np.float32)
+        dsc = distance_score(obs.distance, p.target_lo_m, p.target_hi_m, p.d_margin_m)
+        return front, np.where(obs.visible, dsc, 0.0).astype(np.float32)
+
+    def reset(self, obs: Observations, point_rows: np.ndarray | None = None) -> dict[str, float]:
+        """Replace the whole set by ``obs`` (all rows count for points unless ``point_rows`` says)."""
+        self.obs = Observations(
+            obs.visible.copy(), obs.distance.copy(), obs.direction.copy(), obs.cos_incidence.copy()
+        )
+        n = len(obs)
+        self.point_rows = np.ones(n, bool) if point_rows is None else np.asarray(point_rows, bool).copy()
+        self.front, self.dscore = self._row_scores(self.obs)
+        a = self.obs.visible.astype(np.float32)
+        self.common = np.rint(a @ a.T).astype(np.int64)
+        self.n_visible = self.obs.visible.sum(axis=1).astype(np.int64)
+        self._recompute_points(np.arange(self.n_points))
+        self._parts = self._full_parts()
+        return self.parts()
+
+    # --------------------------------------------------------------------------- point scores
+    def _point_terms(self, cols: np.ndarray, rows_mask: np.ndarray):
+        """Background aggregates over the rows in ``rows_mask`` (point rows only) for columns ``cols``."""
+        sel = np.flatnonzero(rows_mask & self.point_rows)
+        vis = self.obs.visible[np.ix_(sel, cols)]
+        count = vis.sum(axis=0)
+        dmax = self.dscore[np.ix_(sel, cols)].max(axis=0) if len(sel) else np.zeros(len(cols), np.float32)
+        if self.mode == "coverage":
+            return count, dmax, None, None, None, None
+        fmax = self.front[np.ix_(sel, cols)].max(axis=0) if len(sel) else np.zeros(len(cols), np.float32)
+        ri, ci = np.nonzero(vis)
+        u = self.obs.direction[sel[ri], cols[ci]].astype(np.float64)
+        usum = np.stack([np.bincount(ci, u[:, k], minlength=len(cols)) for k in range(3)], axis=1)
+        return count, dmax, fmax, usum, ci, u
+
+    def _combine(self, count, dmax, fmax, sq_sum):
+        p = self.params
+        cnt = np.minimum(1.0, count / float(p.k_count))
+        if self.mode == "coverage":
+            w = float(p.coverage_closeness_weight)
+            return cnt * ((1.0 - w) + w * dmax)
+        sigma = np.sqrt(sq_sum / (count + p.eps))
+        return fmax * dmax * smith_w1(sigma) * smith_w3(sigma) * cnt
+
+    def _recompute_points(self, cols: np.ndarray) -> None:
+        cols = np.asarray(cols, dtype=np.intp)
+        if len(cols) == 0:
+            return
+        count, dmax, fmax, usum, ci, u = self._point_terms(cols, np.ones(self.n_viewpoints, bool))
+        self.count[cols] = count
+        if self.mode == "coverage":
+            self.point_score[cols] = self._combine(count, dmax, None, None)
+            return
+        u_bar = usum / np.maximum(np.linalg.norm(usum, axis=1, keepdims=True), 1e-300)
+        ang = np.arccos(np.clip(np.einsum("nk,nk->n", u, u_bar[ci]), -1.0, 1.0))
+        sq = np.bincount(ci, ang**2, minlength=len(cols))
+        self.point_score[cols] = self._combine(count, dmax.astype(float), fmax.astype(float), sq)
+
+    # ---------------------------------------------------------------------------- full score
+    def _full_parts(self) -> dict[str, float]:
+        n_vp = self.n_viewpoints
+        rp = float(self.point_score.sum())
+        if n_vp == 0:
+            return {
+                "R": rp,
+                "R_point_sum": rp,
+                "visibility": 0.0,
+                "overlap": 0.0,
+                "connectivity": 0.0,
+                "R_viewpoint": 0.0,
+            }
+        f = self._pair_scores(self.common, self.n_visible, self.n_visible)
+        np.fill_diagonal(f, 0.0)
+        s_ovl = float(_topk_sum(f, self.params.top_k).sum() / (self.params.top_k * n_vp))
+        edges = f > self.params.tau_edge
+        _, labels = connected_components(coo_matrix(edges).tocsr(), directed=False)
+        s_conn = float(np.bincount(labels).max() / n_vp)
+        s_vis = float(self.n_visible.sum() / (n_vp * self.n_points))
+        r_vp = (s_vis + s_ovl + s_conn) / 3.0
+        return {
+            "R": rp + self.n_points * r_vp,
+            "R_point_sum": rp,
+            "visibility": s_vis,
+            "overlap": s_ovl,
+            "connectivity": s_conn,
+            "R_viewpoint": r_vp,
+        }
+
+    def _pair_scores(self, common, n_a, n_b) -> np.ndarray:
+        smaller = np.minimum(np.asarray(n_a)[..., :, None], np.asarray(n_b)[..., None, :])
+        r = np.where(smaller > 0, common / np.maximum(smaller, 1), 0.0)
+        p = self.params
+        return np.clip((r - p.r_min) / (p.r_max - p.r_min), 0.0, 1.0)
+
+    # ------------------------------------------------------------------------------ proposals
+    def evaluate(
+        self,
+        remove,
+        new: Observations | None = None,
+        n_alternatives: int = 1,
+        new_point_rows: np.ndarray | None = None,
+    ) -> Proposal:
+        """Score L alternative changes that each drop the rows ``remove`` and add m new rows.
+
+        Args:
+            remove: row indices dropped by every alternative (may be empty).
+            new: L * m observations, alternative after alternative (None or 0 rows: m = 0).
+            n_alternatives: L.
+            new_point_rows: (m,) whether each new row counts for the point scores (default: yes).
+
+        Returns:
+            a ``Proposal`` with (L,) arrays; the state itself is unchanged.
+        """
+        lam = int(n_alternatives)
+        remove = np.unique(np.asarray(remove, dtype=np.intp).reshape(-1))
+        n_pt = self.n_points
+        if new is None or len(new) == 0:
+            new = Observations.empty(n_pt)
+            m = 0
+        else:
+            if len(new) % lam:
+                raise ValueError(f"{len(new)} new rows do not split into {lam} alternatives")
+            m = len(new) // lam
+        npr = np.ones(m, bool) if new_point_rows is None else np.asarray(new_point_rows, bool).reshape(m)
+        self.evaluations += lam
+        keep_mask = np.ones(self.n_viewpoints, bool)
+        keep_mask[remove] = False
+        keep = np.flatnonzero(keep_mask)
+        n_keep = len(keep)
+        n_total = n_keep + m
+        new_vis = new.visible.reshape(lam, m, n_pt)
+
+        # ---- point part: only points seen by a removed or an added row change
+        touched = new_vis.any(axis=(0, 1))
+        if len(remove):
+            touched |= self.obs.visible[remove].any(axis=0)
+        cols = np.flatnonzero(touched)
+        r_point = np.full(lam, float(self.point_score.sum()))
+        if len(cols):
+            r_point += self._touched_point_scores(cols, keep_mask, new, lam, m, npr).sum(axis=1)
+            r_point -= float(self.point_score[cols].sum())
+
+        # ---- viewpoint-set part
+        if n_total == 0:
+            zero = np.zeros(lam)
+            return Proposal(r_point.copy(), r_point, zero, zero, zero)
+        nv_cols = new_vis[:, :, cols].astype(np.float32)  # (L, m, T)
+        n_new = nv_cols.sum(axis=2).astype(np.int64)  # (L, m)
+        n_keep_vis = self.n_visible[keep]
+        s_vis = (n_keep_vis.sum() + n_new.sum(axis=1)) / (n_total * n_pt)
+
+        k = int(self.params.top_k)
+        f_kk = self._pair_scores(self.common[np.ix_(keep, keep)], n_keep_vis, n_keep_vis)
+        np.fill_diagonal(f_kk, 0.0)
+        a_keep = self.obs.visible[np.ix_(keep, cols)].astype(np.float32)  # (K, T)
+        # one 2-D product: numpy's stacked matmul does not reach BLAS
+        c_nk = np.rint(nv_cols.reshape(lam * m, len(cols)) @ a_keep.T).reshape(lam, m, n_keep)
+        c_nn = np.rint(nv_cols @ np.swapaxes(nv_cols, 1, 2))  # (L, m, m)
+        f_nk = self._pair_scores(c_nk, n_new, np.broadcast_to(n_keep_vis, (lam, n_keep)))
+        f_nn = self._pair_scores(c_nn, n_new, n_new)
+        f_nn[:, np.arange(m), np.arange(m)] = 0.0
+        # kept rows: their own top-k among kept rows, merged with the m new columns
+        top_kk = _topk_values(f_kk, k)  # (K, k)
+        merged = np.concatenate(
+            [np.broadcast_to(top_kk, (lam, n_keep, top_kk.shape[1])), np.swapaxes(f_nk, 1, 2)], axis=2
+        )
+        ovl = _topk_sum(merged, k).sum(axis=1)
+        ovl += _topk_sum(np.concatenate([f_nk, f_nn], axis=2), k).sum(axis=1)
+        s_ovl = ovl / (k * n_total)
+
+        s_conn = self._largest_component(f_kk, f_nk, f_nn) / n_total
+        r_vp = (s_vis + s_ovl + s_conn) / 3.0
+        return Proposal(r_point + n_pt * r_vp, r_point, s_vis, s_ovl, s_conn)
+
+    def _touched_point_scores(self, cols, keep_mask, new: Observations, lam, m, npr) -> np.ndarray:
+        """New point scores (L, T) of the touched columns under each alternative."""
+        t = len(cols)
+        count, dmax, fmax, usum, ci, u = self._point_terms(cols, keep_mask)
+        if m and npr.any():
+            rows = np.flatnonzero(np.tile(npr, lam))  # rows of ``new`` counting for points
+            ix = np.ix_(rows, cols)
+            nvis = new.visible[ix].reshape(lam, -1, t)
+            p = self.params
+            dsc_n = np.where(
+                nvis,
+                distance_score(new.distance[ix], p.target_lo_m, p.target_hi_m, p.d_margin_m).reshape(
+                    lam, -1, t
+                ),
+                0.0,
+            )
+            count_l = count[None] + nvis.sum(axis=1)
+            dmax_l = np.maximum(dmax[None], dsc_n.max(axis=1))
+        else:
+            nvis = None
+            count_l = np.broadcast_to(count, (lam, t))
+            dmax_l = np.broadcast_to(dmax, (lam, t))
+        if self.mode == "coverage":
+            return self._combine(count_l, dmax_l.astype(float), None, None)
+        if nvis is not None:
+            front_n = np.where(nvis, np.maximum(new.cos_incidence[ix].reshape(lam, -1, t), 0.0), 0.0)
+            fmax_l = np.maximum(fmax[None], front_n.max(axis=1))
+            ndir = new.direction[ix].reshape(lam, -1, t, 3) * nvis[..., None]
+            usum_l = usum[None] + ndir.sum(axis=1, dtype=np.float64)
+        else:
+            fmax_l = np.broadcast_to(fmax, (lam, t))
+            usum_l = np.broadcast_to(usum, (lam, t, 3))
+        u_bar = usum_l / np.maximum(np.linalg.norm(usum_l, axis=2, keepdims=True), 1e-300)
+        # kept pairs against each alternative's mean direction
+        dots = np.einsum("lnk,nk->ln", u_bar[:, ci], u)
+        ang2 = np.arccos(np.clip(dots, -1.0, 1.0)) ** 2
+        flat = (np.arange(lam)[:, None] * t + ci[None]).ravel()
+        sq = np.bincount(flat, ang2.ravel(), minlength=lam * t).reshape(lam, t)
+        if nvis is not None:
+            dn = np.einsum("lmtk,ltk->lmt", ndir.astype(np.float64), u_bar)
+            sq += np.where(nvis, np.arccos(np.clip(dn, -1.0, 1.0)) ** 2, 0.0).sum(axis=1)
+        return self._combine(count_l, dmax_l.astype(float), fmax_l.astype(float), sq)
+
+    def _largest_component(self, f_kk, f_nk, f_nn) -> np.ndarray:
+        """Size (L,) of the largest connected component after each alternative."""
+        tau = self.params.tau_edge
+        lam, m, n_keep = f_nk.shape
+        if n_keep:
+            n_comp, labels = connected_components(coo_matrix(f_kk > tau).tocsr(), directed=False)
+            comp_size = np.bincount(labels, minlength=n_comp)
+        else:
+            n_comp, labels, comp_size = 0, np.zeros(0, np.intp), np.zeros(0, np.int64)
+        if m == 0:
+            return np.full(lam, comp_size.max() if n_comp else 0, dtype=float)
+        one_hot = np.zeros((n_keep, n_comp), np.float32)
+        one_hot[np.arange(n_keep), labels] = 1.0
+        touches = ((f_nk > tau).astype(np.float32) @ one_hot) > 0  # (L, m, n_comp)
+        sizes = np.concatenate([comp_size, np.ones(m, np.int64)])
+        out = np.empty(lam)
+        for i in range(lam):
+            ni, ci = np.nonzero(touches[i])
+            a, b = np.nonzero(np.triu(f_nn[i] > tau, 1))
+            rows = np.concatenate([n_comp + ni, n_comp + a])
+            cols_ = np.concatenate([ci, n_comp + b])
+            g = coo_matrix((np.ones(len(rows)), (rows, cols_)), shape=(n_comp + m, n_comp + m)).tocsr()
+            _, lab = connected_components(g, directed=False)
+            out[i] = np.bincount(lab, weights=sizes).max()
+        return out
+
+    # --------------------------------------------------------------------------------- commit
+    def commit(
+        self, remove, new: Observations | None = None, new_point_rows: np.ndarray | None = None
+    ) -> dict[str, float]:
+        """Apply one change: drop ``remove``, add ``new``. When as many rows are added as removed,
+        the new rows take the removed rows' places (order kept); otherwise removed rows are deleted
+        and new rows appended. Returns the new parts."""
+        remove = np.unique(np.asarray(remove, dtype=np.intp).reshape(-1))
+        new = Observations.empty(self.n_points) if new is None else new
+        m = len(new)
+        npr = np.ones(m, bool) if new_point_rows is None else np.asarray(new_point_rows, bool).reshape(m)
+        touched = np.zeros(self.n_points, bool)
+        if len(remove):
+            touched |= self.obs.visible[remove].any(axis=0)
+        if m:
+            touched |= new.visible.any(axis=0)
+        front_n, dsc_n = self._row_scores(new)
+        if m == len(remove) and m:
+            slots = remove
+            self.obs.visible[slots] = new.visible
+            self.obs.distance[slots] = new.distance
+            self.obs.direction[slots] = new.direction
+            self.obs.cos_incidence[slots] = new.cos_incidence
+            self.point_rows[slots] = npr
+            self.front[slots] = front_n
+            self.dscore[slots] = dsc_n
+        else:
+            keep = np.ones(self.n_viewpoints, bool)
+            keep[remove] = False
+            self.obs = Observations.concatenate([self.obs.take(np.flatnonzero(keep)), new], self.n_points)
+            self.point_rows = np.concatenate([self.point_rows[keep], npr])
+            self.front = np.concatenate([self.front[keep], front_n])
+            self.dscore = np.concatenate([self.dscore[keep], dsc_n])
+            self.common = self.common[np.ix_(keep, keep)]
+            self.common = np.pad(self.common, ((0, m), (0, m)))
+            slots = np.arange(self.n_viewpoints - m, self.n_viewpoints)
+        if len(slots):
+            a = self.obs.visible.astype(np.float32)
+            rows = np.rint(a[slots] @ a.T).astype(np.int64)
+            self.common[slots, :] = rows
+            self.common[:, slots] = rows.T
+        self.n_visible = self.obs.visible.sum(axis=1).astype(np.int64)
+        self._recompute_points(np.flatnonzero(touched))
+        self._parts = self._full_parts()
+        return self.parts()
+
+
+def _topk_values(f: np.ndarray, k: int) -> np.ndarray:
+    """The k largest values of each row of (..., n) (all of them when n <= k), unordered."""
+    n = f.shape[-1]
+    if n <= k:
+        return f
+    return -np.partition(-f, k - 1, axis=-1)[..., :k]
+
+
+def _topk_sum(f: np.ndarray, k: int) -> np.ndarray:
+    """Sum of the k largest values along the last axis (missing values count as 0)."""
+    return _topk_values(f, k).sum(axis=-1)

@@ -1,0 +1,399 @@
+"""Yan et al. 2021 ("Sampling-based path planning for high-quality aerial 3D reconstruction of urban
+scenes", Remote Sensing 13(5):989) baseline. No public code: built from the paper's description and
+``reference/baselines.md``; every value the paper leaves open is a documented parameter.
+
+1. Surface samples of the proxy (4000, as the seed paper gave it) and a per-sample quality: the
+   smoothness of the normals around it, sum_j exp(-|s_i - s_j| / R) exp(-(1 - n_i.n_j)^2 / (1 -
+   cos theta_t)^2) / sum_j exp(-|s_i - s_j| / R), min-max normalised (the paper also multiplies a
+   Poisson-gradient confidence, which a proxy handed to us does not carry).
+2. No-fly space: closer than d_min to the proxy (or under it: the sky straight above is blocked).
+   View-sampling space: voxels whose distance to the proxy lies in [d_min, d_max]. The paper gives no
+   numbers; reimplementations used 25 / 35 m around d_opt = 30 m, scaled here to the target GSD
+   distance (d_min = 25/30 d_opt, d_max = 35/30 d_opt).
+3. Candidates: uniform samples in the view-sampling space, each aimed at its closest proxy point
+   (pitch clipped to the gimbal range).
+4. Score of a candidate for a sample: c = visible * c_d * c_o, c_d = 1 - (d - d_opt)^2 / (d_opt -
+   d_min)^2 (expected accuracy: distance), c_o = exp(-(1 - n.v)^2 / (1 - cos theta_t)^2) (expected
+   completeness: obliqueness); a sample above the camera is invisible (the camera does not look up).
+5. Selection, greedy in two stages: local, every low-quality sample (quality < threshold, lowest
+   first) gets its best not-yet-chosen candidate, re-aimed at it; global, candidates are added by
+   the largest score over the samples still observed fewer than ``min_observations`` times, skipping
+   candidates adjacent to chosen ones, until no candidate adds anything.
+6. Key-image selection on the flight order: a view whose observed samples overlap the previous key
+   view's by more than ``key_max_overlap``, or that observes fewer than ``key_min_samples``
+   samples, is dropped.
+7. Flight order: travelling-salesman path (``planner.trajectory``; the paper used ant-colony
+   optimisation on a distance/direction cost, we use the shared LKH path on distance).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping
+
+import numpy as np
+import scipy.sparse as sparse
+import trimesh
+from scipy.spatial import cKDTree
+from tqdm import tqdm
+
+from planner.base import Plan, PlanningError
+from planner.sampling import sample_surface, validate_proxy
+from planner.trajectory import order_viewpoints
+from planner.visibility import VisibilityLimits, VisibilityModel
+from scene.camera import Intrinsics, yaw_pitch_from_direction
+
+DEFAULTS = {
+    "n_samples": 4000,
+    "target_distance_m": 10.0,
+    "d_min_ratio": 25.0 / 30.0,
+    "d_max_ratio": 35.0 / 30.0,
+    "theta_t_deg": 60.0,
+    "max_incidence_deg": 85.0,
+    "voxel_size_m": 1.0,
+    "n_candidates": 20000,
+    "min_altitude_m": 2.0,
+    "pitch_min_deg": -90.0,
+    "pitch_max_deg": 30.0,
+    "quality_radius_m": 2.0,
+    "quality_threshold": 0.5,
+    "min_score": 0.1,
+    "min_observations": 2,
+    "adjacency_m": 1.0,
+    "key_max_overlap": 0.95,
+    "key_min_samples": 5,
+    "takeoff_xyz": None,
+    "tsp_runs": 1,
+    "batch_size": 2000,
+    "progress": True,
+}
+
+
+def _merged(params: Mapping | None) -> dict:
+    merged = dict(DEFAULTS)
+    if params:
+        unknown = sorted(set(params) - set(DEFAULTS) - {"name", "_target_"})
+        if unknown:
+            raise ValueError(f"yan: unknown parameter(s) {unknown}; known: {sorted(DEFAULTS)}")
+        merged.update({k: v for k, v in params.items() if k in DEFAULTS})
+    if not 0.0 < float(merged["d_min_ratio"]) < 1.0 < float(merged["d_max_ratio"]):
+        raise ValueError(
+            "yan: need 0 < d_min_ratio < 1 < d_max_ratio, got "
+            f"{merged['d_min_ratio']}, {merged['d_max_ratio']}"
+        )
+    if not float(merged["target_distance_m"]) > 0.0:
+        raise ValueError(f"yan: target_distance_m must be > 0, got {merged['target_distance_m']}")
+    if not 0.0 < float(merged["theta_t_deg"]) < 90.0:
+        raise ValueError(f"yan: theta_t_deg must lie in (0, 90), got {merged['theta_t_deg']}")
+    if int(merged["min_observations"]) < 1 or int(merged["n_candidates"]) < 1:
+        raise ValueError("yan: min_observations and n_candidates must be >= 1")
+    if not float(merged["voxel_size_m"]) > 0.0:
+        raise ValueError(f"yan: voxel_size_m must be > 0, got {merged['voxel_size_m']}")
+    return merged
+
+
+def distance_limits(params: Mapping) -> tuple[float, float, float]:
+    """(d_min, d_opt, d_max) in metres: the view-sampling band around the target distance."""
+    d_opt = float(params["target_distance_m"])
+    return float(params["d_min_ratio"]) * d_opt, d_opt, float(params["d_max_ratio"]) * d_opt
+
+
+def sample_quality(
+    points: np.ndarray, normals: np.ndarray, radius_m: float, theta_t_deg: float
+) -> np.ndarray:
+    """Normal-smoothness quality (P,) in [0, 1] of surface samples (low: edges, corners, noise).
+
+    Weighted mean over neighbours within ``2 * radius_m`` of exp(-(1 - n_i.n_j)^2 / (1 - cos theta_t)^2),
+    weights exp(-|s_i - s_j| / radius_m), min-max normalised over the samples.
+    """
+    tree = cKDTree(points)
+    pairs = tree.query_pairs(2.0 * float(radius_m), output_type="ndarray")
+    n = len(points)
+    if len(pairs) == 0:
+        return np.ones(n)
+    i, j = pairs[:, 0], pairs[:, 1]
+    dist = np.linalg.norm(points[i] - points[j], axis=1)
+    weight = np.exp(-dist / float(radius_m))
+    denom = (1.0 - math.cos(math.radians(theta_t_deg))) ** 2
+    smooth = np.exp(-((1.0 - np.sum(normals[i] * normals[j], axis=1)) ** 2) / denom)
+    num = np.bincount(i, weight * smooth, n) + np.bincount(j, weight * smooth, n)
+    den = np.bincount(i, weight, n) + np.bincount(j, weight, n)
+    q = np.where(den > 0, num / np.maximum(den, 1e-12), 1.0)
+    span = q.max() - q.min()
+    return (q - q.min()) / span if span > 1e-12 else np.ones(n)
+
+
+def view_sampling_space(model: VisibilityModel, proxy: trimesh.Trimesh, params: Mapping) -> np.ndarray:
+    """Centres (N, 3) of the voxels whose distance to the proxy lies in [d_min, d_max] (metres).
+
+    Voxels below ``min_altitude_m`` and voxels whose sky is blocked by the proxy (inside or under
+    the structure) belong to the no-fly space.
+    """
+    d_min, _, d_max = distance_limits(params)
+    step = float(params["voxel_size_m"])
+    lo = proxy.bounds[0] - d_max
+    hi = proxy.bounds[1] + d_max
+    lo[2] = max(lo[2], float(params["min_altitude_m"]))
+    axes = [np.arange(lo[k] + 0.5 * step, hi[k], step) for k in range(3)]
+    n_voxels = int(np.prod([len(a) for a in axes]))
+    if n_voxels > 30_000_000:
+        raise PlanningError(
+            f"yan: voxel_size_m = {step} gives {n_voxels} voxels; choose a larger voxel_size_m"
+        )
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    keep = []
+    for start in range(0, len(grid), 500_000):
+        chunk = grid[start : start + 500_000]
+        clearance = model.clearance(chunk)
+        band = (clearance >= d_min) & (clearance <= d_max)
+        keep.append(chunk[band])
+    inside = np.concatenate(keep) if keep else np.zeros((0, 3))
+    if len(inside):
+        sky = inside.copy()
+        sky[:, 2] = proxy.bounds[1][2] + d_max + 1.0
+        inside = inside[~model.occluded(inside, sky)]
+    if len(inside) == 0:
+        raise PlanningError(
+            f"yan: no valid viewpoint position: the view-sampling space [d_min, d_max] = [{d_min:.2f}, "
+            f"{d_max:.2f}] m above min_altitude_m = {params['min_altitude_m']} m is empty"
+        )
+    return inside
+
+
+def aim(positions: np.ndarray, targets: np.ndarray, pitch_min: float, pitch_max: float) -> np.ndarray:
+    """(N, 5) viewpoints at ``positions`` looking at ``targets`` (pitch clipped to the gimbal range)."""
+    yaw, pitch = yaw_pitch_from_direction(np.asarray(targets) - np.asarray(positions))
+    return np.column_stack([positions, yaw, np.clip(pitch, pitch_min, pitch_max)])
+
+
+def view_scores(
+    model: VisibilityModel, viewpoints: np.ndarray, d_min: float, d_opt: float, theta_t_deg: float, batch: int
+) -> sparse.csr_matrix:
+    """Sparse (V, P) scores c = visible * c_d * c_o of every viewpoint for every sample.
+
+    ``visible`` is the shared visibility model's test (frustum, distance, incidence, occlusion) and
+    additionally the sample must not lie above the camera.
+    """
+    denom_o = (1.0 - math.cos(math.radians(theta_t_deg))) ** 2
+    rows = []
+    for start in range(0, len(viewpoints), batch):
+        vps = viewpoints[start : start + batch]
+        obs = model.observe(vps)
+        visible = obs.visible & (model.points[None, :, 2] <= vps[:, None, 2])
+        c_d = 1.0 - (obs.distance - d_opt) ** 2 / (d_opt - d_min) ** 2
+        c_o = np.exp(-((1.0 - obs.cos_incidence) ** 2) / denom_o)
+        rows.append(
+            sparse.csr_matrix(np.where(visible, np.clip(c_d, 0.0, 1.0) * c_o, 0.0).astype(np.float32))
+        )
+    return sparse.vstack(rows, format="csr")
+
+
+def position_scores(
+    model: VisibilityModel,
+    positions: np.ndarray,
+    samples: np.ndarray,
+    d_min: float,
+    d_opt: float,
+    d_max: float,
+    theta_t_deg: float,
+    max_incidence_deg: float,
+) -> sparse.csr_matrix:
+    """Sparse (N, S) scores of positions for samples when the camera is aimed at the sample.
+
+    Aimed at the sample, the frustum test always passes; distance band, incidence, the
+    no-looking-up rule and occlusion remain.
+    """
+    pts = model.points[samples]
+    nrm = model.normals[samples]
+    to_cam = positions[:, None, :] - pts[None]
+    dist = np.linalg.norm(to_cam, axis=-1)
+    cos = np.einsum("npk,pk->np", to_cam, nrm) / np.maximum(dist, 1e-9)
+    ok = (dist >= d_min) & (dist <= d_max) & (cos >= math.cos(math.radians(max_incidence_deg)))
+    ok &= pts[None, :, 2] <= positions[:, None, 2]
+    ni, si = np.nonzero(ok)
+    if len(ni):
+        origins = pts[si] + model.ray_offset_m * nrm[si]
+        free = ~model.occluded(origins, positions[ni])
+        ni, si = ni[free], si[free]
+    denom_o = (1.0 - math.cos(math.radians(theta_t_deg))) ** 2
+    c_d = np.clip(1.0 - (dist[ni, si] - d_opt) ** 2 / (d_opt - d_min) ** 2, 0.0, 1.0)
+    c_o = np.exp(-((1.0 - cos[ni, si]) ** 2) / denom_o)
+    return sparse.csr_matrix((c_d * c_o, (ni, si)), shape=(len(positions), len(samples)))
+
+
+def select_global(
+    scores: sparse.csr_matrix,
+    counts: np.ndarray,
+    candidate_positions: np.ndarray,
+    taken: np.ndarray,
+    params: Mapping,
+) -> list[int]:
+    """Greedy global selection: add the candidate with the largest score over under-observed samples.
+
+    Args:
+        scores: (C, P) candidate scores.
+        counts: (P,) observations so far (updated in place).
+        candidate_positions: (C, 3) for the adjacency rule.
+        taken: (C,) bool, candidates already chosen or blocked (updated in place).
+        params: ``min_score``, ``min_observations``, ``adjacency_m``.
+
+    Returns:
+        indices of the chosen candidates, in order.
+    """
+    need = int(params["min_observations"])
+    observed = scores.multiply(scores >= float(params["min_score"])).tocsr()
+    observed_t = observed.T.tocsr()
+    tree = cKDTree(candidate_positions)
+    deficit = (counts < need).astype(np.float32)
+    gains = observed @ deficit
+    gains[taken] = 0.0
+    chosen: list[int] = []
+    while True:
+        best = int(np.argmax(gains))
+        if gains[best] <= 0.0:
+            break
+        chosen.append(best)
+        taken[best] = True
+        gains[best] = 0.0
+        row = observed.getrow(best)
+        counts[row.indices] += 1
+        newly_done = row.indices[counts[row.indices] == need]
+        if len(newly_done):
+            # Those samples no longer count: remove their scores from every candidate's gain.
+            gains -= np.asarray(observed_t[newly_done].sum(axis=0)).ravel()
+        blocked = tree.query_ball_point(candidate_positions[best], float(params["adjacency_m"]))
+        taken[blocked] = True
+        gains[blocked] = 0.0
+        gains[taken] = np.minimum(gains[taken], 0.0)
+    return chosen
+
+
+def key_images(order_vis: sparse.csr_matrix, max_overlap: float, min_samples: int) -> np.ndarray:
+    """Mask (V,) of the key views along a flight order.
+
+    A view is dropped when it observes fewer than ``min_samples`` samples or when the share of its
+    samples also observed by the previous key view exceeds ``max_overlap``.
+    """
+    vis = order_vis.tocsr()
+    keep = np.zeros(vis.shape[0], bool)
+    last = None
+    for v in range(vis.shape[0]):
+        cols = vis.indices[vis.indptr[v] : vis.indptr[v + 1]]
+        if len(cols) < min_samples:
+            continue
+        if last is not None and len(cols):
+            if np.isin(cols, last, assume_unique=True).mean() > max_overlap:
+                continue
+        keep[v] = True
+        last = cols
+    return keep
+
+
+def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: int) -> Plan:
+    """Plan Yan et al.'s flight on a proxy mesh.
+
+    Args:
+        proxy: proxy triangle mesh in world metres (Z up, ground at z = 0).
+        intrinsics: the camera.
+        params: see ``DEFAULTS`` and ``conf/planner/yan.yaml`` (metres, degrees).
+        seed: seeds the surface samples and the candidate sampling.
+
+    Returns:
+        The plan (kinds ``local`` and ``global``) in TSP order.
+    """
+    p = _merged(params)
+    validate_proxy(proxy)
+    rng = np.random.default_rng(seed)
+    timings: dict[str, float] = {}
+    d_min, d_opt, d_max = distance_limits(p)
+    pitch_lim = (float(p["pitch_min_deg"]), float(p["pitch_max_deg"]))
+
+    t0 = time.perf_counter()
+    points, normals = sample_surface(proxy, int(p["n_samples"]), seed)
+    limits = VisibilityLimits(d_min, d_max, float(p["max_incidence_deg"]))
+    model = VisibilityModel(proxy, points, normals, intrinsics, limits)
+    quality = sample_quality(points, normals, float(p["quality_radius_m"]), float(p["theta_t_deg"]))
+    timings["samples"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    space = view_sampling_space(model, proxy, p)
+    n_cand = min(int(p["n_candidates"]), len(space))
+    pick = rng.choice(len(space), size=n_cand, replace=False)
+    jitter = (rng.random((n_cand, 3)) - 0.5) * float(p["voxel_size_m"])
+    positions = space[pick] + jitter
+    positions[:, 2] = np.maximum(positions[:, 2], float(p["min_altitude_m"]))
+    import open3d as o3d  # the closest-point query of the shared ray-casting scene
+
+    closest = model._scene.compute_closest_points(o3d.core.Tensor(positions.astype(np.float32)))
+    candidates = aim(positions, closest["points"].numpy().astype(float), *pitch_lim)
+    timings["candidates"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    taken = np.zeros(n_cand, bool)
+    counts = np.zeros(len(points), np.int64)
+    local_vps: list[np.ndarray] = []
+    low = np.flatnonzero(quality < float(p["quality_threshold"]))
+    low = low[np.argsort(quality[low], kind="stable")]
+    if len(low):
+        aimed = position_scores(
+            model, positions, low, d_min, d_opt, d_max, float(p["theta_t_deg"]), float(p["max_incidence_deg"])
+        ).tocsc()
+        for k in tqdm(range(len(low)), desc="yan local", disable=not p["progress"]):
+            col = aimed.getcol(k)
+            cand, val = col.indices, col.data
+            free = ~taken[cand]
+            if not free.any():
+                continue
+            best = cand[free][np.argmax(val[free])]
+            taken[best] = True
+            local_vps.append(aim(positions[best][None], points[low[k]][None], *pitch_lim)[0])
+    local_vps = np.array(local_vps).reshape(-1, 5)
+    if len(local_vps):
+        local_scores = view_scores(
+            model, local_vps, d_min, d_opt, float(p["theta_t_deg"]), int(p["batch_size"])
+        )
+        counts += np.asarray((local_scores >= float(p["min_score"])).sum(axis=0)).ravel().astype(np.int64)
+    timings["local"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    scores = view_scores(model, candidates, d_min, d_opt, float(p["theta_t_deg"]), int(p["batch_size"]))
+    chosen = select_global(scores, counts, positions, taken, p)
+    timings["global"] = time.perf_counter() - t0
+
+    selected = np.concatenate([local_vps, candidates[chosen]])
+    kinds = ["local"] * len(local_vps) + ["global"] * len(chosen)
+    if len(selected) == 0:
+        raise PlanningError("yan: no candidate observes any surface sample; check target_distance_m")
+    t0 = time.perf_counter()
+    start = None if p["takeoff_xyz"] is None else np.asarray(p["takeoff_xyz"], dtype=float)
+    order = order_viewpoints(selected[:, :3], start=start, runs=int(p["tsp_runs"]))
+    timings["tsp"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    ordered = selected[order]
+    ordered_vis = view_scores(model, ordered, d_min, d_opt, float(p["theta_t_deg"]), int(p["batch_size"]))
+    ordered_vis = (ordered_vis >= float(p["min_score"])).astype(np.float32).tocsr()
+    keep = key_images(ordered_vis, float(p["key_max_overlap"]), int(p["key_min_samples"]))
+    timings["key_images"] = time.perf_counter() - t0
+    timings["total"] = sum(timings.values())
+    final_counts = np.asarray(ordered_vis[keep].sum(axis=0)).ravel()
+    info = {
+        "parameters": {k: v for k, v in p.items() if k != "progress"},
+        "timings_s": timings,
+        "d_min_m": d_min,
+        "d_opt_m": d_opt,
+        "d_max_m": d_max,
+        "n_samples": int(len(points)),
+        "n_low_quality": int(len(low)),
+        "n_view_space_voxels": int(len(space)),
+        "n_candidates": int(n_cand),
+        "n_local": int(len(local_vps)),
+        "n_global": int(len(chosen)),
+        "n_before_key_images": int(len(selected)),
+        "n_key_images": int(keep.sum()),
+        "fraction_observed_min": float(np.mean(final_counts >= int(p["min_observations"]))),
+        "fraction_observed_once": float(np.mean(final_counts >= 1)),
+        "rays_cast": model.rays_cast,
+    }
+    return Plan(viewpoints=ordered[keep], kinds=[kinds[i] for i in order[keep]], planner="yan", info=info)

@@ -1,0 +1,123 @@
+"""Similarity alignment of an SfM model to GNSS positions, and pose errors against the true poses."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+
+import numpy as np
+import pycolmap
+
+from reconstruct.errors import ReconstructionError
+from reconstruct.flight import Flight
+
+log = logging.getLogger(__name__)
+
+
+def align_to_gnss(
+    reconstruction: pycolmap.Reconstruction,
+    names,
+    gnss_positions: np.ndarray,
+    gnss_sigma_m: float,
+    cfg: Mapping,
+    seed: int = 0,
+) -> pycolmap.Sim3d:
+    """Robustly fit the similarity world_from_model to the GNSS positions and apply it in place.
+
+    LO-RANSAC on camera centres (``pycolmap.align_reconstruction_to_locations``) with an inlier
+    threshold of ``max_error_sigmas * gnss_sigma_m`` metres, floored at ``min_error_m``.
+
+    Args:
+        reconstruction: the SfM model; transformed in place into the world frame.
+        names: image names, one per row of ``gnss_positions``.
+        gnss_positions: (N, 3) GNSS camera positions in metres.
+        gnss_sigma_m: GNSS noise standard deviation in metres.
+        cfg: the ``reconstruct.align`` config.
+        seed: RANSAC seed.
+
+    Returns:
+        The applied ``Sim3d`` (world_from_model).
+    """
+    position_by_name = {str(n): np.asarray(p, float) for n, p in zip(names, gnss_positions, strict=True)}
+    reg_names = [reconstruction.image(i).name for i in reconstruction.reg_image_ids()]
+    reg_names = [n for n in reg_names if n in position_by_name]
+    min_common = int(cfg["min_common_images"])
+    if len(reg_names) < max(min_common, 3):
+        raise ReconstructionError(
+            f"only {len(reg_names)} registered images have GNSS positions; alignment needs {max(min_common, 3)}",
+            {"stage": "align"},
+        )
+    ransac = pycolmap.RANSACOptions()
+    ransac.max_error = max(float(cfg["max_error_sigmas"]) * float(gnss_sigma_m), float(cfg["min_error_m"]))
+    ransac.random_seed = int(seed)
+    locations = np.array([position_by_name[n] for n in reg_names])
+    world_from_model = pycolmap.align_reconstruction_to_locations(
+        reconstruction, reg_names, locations, min_common, ransac
+    )
+    if world_from_model is None:
+        raise ReconstructionError(
+            f"similarity alignment to GNSS failed (RANSAC threshold {ransac.max_error:.3f} m)", {"stage": "align"}
+        )
+    # Least squares (Umeyama) over all RANSAC inliers: the robust estimate alone leaves an error of
+    # the order of the GNSS noise in the model's rotation, the full fit averages it down.
+    centers = np.array([reconstruction.find_image_with_name(n).projection_center() for n in reg_names])
+    residual = np.linalg.norm(_apply_sim3d(world_from_model, centers) - locations, axis=1)
+    inliers = residual <= ransac.max_error
+    refined = pycolmap.estimate_sim3d(centers[inliers], locations[inliers]) if inliers.sum() >= 3 else None
+    if refined is not None:
+        world_from_model = refined
+    reconstruction.transform(world_from_model)
+    log.info("aligned to GNSS: scale %.4f, %d/%d inliers within %.3f m", world_from_model.scale,
+             int(inliers.sum()), len(inliers), ransac.max_error)
+    return world_from_model
+
+
+def _apply_sim3d(sim: pycolmap.Sim3d, points: np.ndarray) -> np.ndarray:
+    matrix = np.asarray(sim.matrix())
+    return points @ matrix[:, :3].T + matrix[:, 3]
+
+
+def rotation_angles_deg(rot_a: np.ndarray, rot_b: np.ndarray) -> np.ndarray:
+    """Angles in degrees (N,) of the rotations ``rot_a @ rot_b^T`` for stacks (N, 3, 3)."""
+    rel = np.einsum("nij,nkj->nik", rot_a, rot_b)
+    cos = (np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def pose_errors(reconstruction: pycolmap.Reconstruction, flight: Flight) -> dict:
+    """Registered fraction and errors of the registered cameras against the flight's true poses.
+
+    Returns:
+        ``n_images``, ``n_registered``, ``registered_fraction``, camera position error in metres
+        (``position_error_median_m``, ``_p90_m``, ``_max_m``) and rotation error in degrees
+        (``rotation_error_median_deg``, ``_p90_deg``, ``_max_deg``); errors are NaN-free (None when
+        nothing registered).
+    """
+    index = {name: i for i, name in enumerate(flight.names)}
+    est_rot, true_idx, est_center = [], [], []
+    for image_id in reconstruction.reg_image_ids():
+        image = reconstruction.image(image_id)
+        if image.name not in index:
+            continue
+        cam_from_world = image.cam_from_world()
+        est_rot.append(cam_from_world.rotation.matrix())
+        est_center.append(image.projection_center())
+        true_idx.append(index[image.name])
+    n_images, n_reg = len(flight), len(true_idx)
+    record = {
+        "n_images": n_images,
+        "n_registered": n_reg,
+        "registered_fraction": n_reg / n_images if n_images else 0.0,
+    }
+    keys = ("position_error_median_m", "position_error_p90_m", "position_error_max_m",
+            "rotation_error_median_deg", "rotation_error_p90_deg", "rotation_error_max_deg")
+    if n_reg == 0:
+        return record | dict.fromkeys(keys)
+    true_idx = np.asarray(true_idx)
+    position_err = np.linalg.norm(np.asarray(est_center) - flight.positions[true_idx], axis=1)
+    rotation_err = rotation_angles_deg(np.asarray(est_rot), flight.rotations[true_idx])
+    values = (
+        np.median(position_err), np.percentile(position_err, 90), position_err.max(),
+        np.median(rotation_err), np.percentile(rotation_err, 90), rotation_err.max(),
+    )
+    return record | {k: float(v) for k, v in zip(keys, values, strict=True)}

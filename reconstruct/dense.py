@@ -1,0 +1,505 @@
+"""Dense reconstruction: depth + normal maps in a standard COLMAP workspace, fused by pycolmap.
+
+Two back-ends write the same workspace (``images/``, ``sparse/``, ``stereo/depth_maps``,
+``stereo/normal_maps``), then ``pycolmap.stereo_fusion`` fuses the geometric maps into a point cloud
+in the frame of the sparse model (the world frame once it is aligned):
+
+- ``cpu``: OpenCV semi-global matching on rectified pairs of each reference view with its best
+  partner views (shared sparse points, triangulation angle, sideways baseline), disparities turned
+  into depth along the reference rays, a multi-partner consistency filter, normals from the depth
+  gradients;
+- ``cuda``: ``pycolmap.patch_match_stereo`` (needs a CUDA build of pycolmap).
+
+Pixel coordinates here are OpenCV's (pixel centres at integers); COLMAP's pinhole parameters are
+shifted by half a pixel when the intrinsic matrices are built.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import shutil
+import time
+from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+from tqdm import tqdm
+
+from scene.io import write_atomic, write_text_atomic
+
+log = logging.getLogger(__name__)
+
+BACKENDS = ("auto", "cpu", "cuda")
+DEPTH_SUFFIX = ".geometric.bin"
+# A rectified view larger than this many times the source image comes from a near-degenerate pair.
+_MAX_RECTIFIED_AREA_RATIO = 4.0
+
+
+@dataclass(frozen=True)
+class View:
+    """One undistorted workspace image: OpenCV intrinsics, cam_from_world, centre (metres)."""
+
+    name: str
+    K: np.ndarray
+    rotation: np.ndarray
+    translation: np.ndarray
+    width: int
+    height: int
+
+    @property
+    def center(self) -> np.ndarray:
+        return -self.rotation.T @ self.translation
+
+    @property
+    def forward(self) -> np.ndarray:
+        """Optical axis (3,) in the world frame."""
+        return self.rotation[2]
+
+
+@dataclass(frozen=True)
+class RectifiedPair:
+    """A reference view and a partner rectified to a common orientation, baseline along +x.
+
+    ``H_ref``/``H_src`` map OpenCV pixels of each view to the rectified image (size ``size``);
+    both rectified cameras share ``K_rect`` and ``rect_from_world``; the partner sits ``baseline``
+    metres along +x, so disparity ``d = x_ref - x_src = f * baseline / Z``.
+    """
+
+    H_ref: np.ndarray
+    H_src: np.ndarray
+    K_rect: np.ndarray
+    rect_from_world: np.ndarray
+    baseline: float
+    size: tuple[int, int]
+
+
+def select_backend(requested: str) -> str:
+    """``cuda`` when requested or (``auto``) when pycolmap was built with CUDA, else ``cpu``."""
+    if requested not in BACKENDS:
+        raise ValueError(f"reconstruct.dense.backend must be one of {BACKENDS}, got {requested!r}")
+    if requested == "auto":
+        return "cuda" if pycolmap.has_cuda else "cpu"
+    if requested == "cuda" and not pycolmap.has_cuda:
+        raise ValueError("reconstruct.dense.backend=cuda but this pycolmap has no CUDA (install pycolmap-cuda12)")
+    return requested
+
+
+def prepare_workspace(sparse_dir: Path, image_dir: Path, workspace: Path, cfg: Mapping) -> Path:
+    """Undistort the images of the sparse model into a fresh COLMAP dense workspace; return it.
+
+    Images are rescaled so their longest side is at most ``dense.max_image_size`` pixels.
+    """
+    workspace = Path(workspace)
+    shutil.rmtree(workspace, ignore_errors=True)
+    workspace.parent.mkdir(parents=True, exist_ok=True)
+    options = pycolmap.UndistortCameraOptions()
+    options.max_image_size = int(cfg["max_image_size"])
+    pycolmap.undistort_images(workspace, sparse_dir, image_dir, output_type="COLMAP", undistort_options=options)
+    return workspace
+
+
+def read_views(workspace: Path) -> dict[str, View]:
+    """The undistorted views of a workspace by image name."""
+    rec = pycolmap.Reconstruction(Path(workspace) / "sparse")
+    views = {}
+    for image_id in rec.reg_image_ids():
+        image = rec.image(image_id)
+        cam = image.camera
+        if cam.model != pycolmap.CameraModelId.PINHOLE:
+            raise ValueError(f"{workspace}: undistorted camera of {image.name} is {cam.model}, expected PINHOLE")
+        fx, fy, cx, cy = cam.params
+        K = np.array([[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]])
+        pose = image.cam_from_world()
+        views[image.name] = View(image.name, K, pose.rotation.matrix(), np.asarray(pose.translation),
+                                 int(cam.width), int(cam.height))
+    return views
+
+
+def select_partners(workspace: Path, views: Mapping[str, View], cfg: Mapping) -> dict[str, list[str]]:
+    """Stereo partners of every view, best first.
+
+    A partner shares at least ``min_shared_points`` sparse points with the reference, its median
+    triangulation angle at those points lies in [``min_triangulation_angle_deg``,
+    ``max_triangulation_angle_deg``] (too small: poor depth resolution; too large: poor matching),
+    and the baseline makes at least ``min_baseline_axis_angle_deg`` with both optical axes (the
+    epipoles stay far outside the images, so rectification does not blow up). Among those, the
+    ``num_partners`` with the highest score are kept: shared points, scaled down linearly for
+    angles below ``partner_ideal_angle_deg`` (a wider angle gives a finer depth resolution).
+    """
+    model = pycolmap.MVSModel()
+    model.read(str(workspace), "COLMAP")
+    shared = model.compute_shared_points()
+    angles = model.compute_triangulation_angles(50.0)
+    lo = math.radians(float(cfg["min_triangulation_angle_deg"]))
+    hi = math.radians(float(cfg["max_triangulation_angle_deg"]))
+    min_axis = math.radians(float(cfg["min_baseline_axis_angle_deg"]))
+    min_shared = int(cfg["min_shared_points"])
+    num_partners = int(cfg["num_partners"])
+    ideal = max(math.radians(float(cfg["partner_ideal_angle_deg"])), 1e-6)
+    partners: dict[str, list[str]] = {}
+    for ref_idx in range(len(shared)):
+        ref_name = model.get_image_name(ref_idx)
+        ref = views[ref_name]
+        candidates = []
+        for src_idx, n_shared in shared[ref_idx].items():
+            angle = angles[ref_idx].get(src_idx, 0.0)
+            if n_shared < min_shared or not (lo <= angle <= hi):
+                continue
+            src = views[model.get_image_name(src_idx)]
+            baseline = src.center - ref.center
+            norm = np.linalg.norm(baseline)
+            if norm == 0:
+                continue
+            cos_axes = np.abs(np.array([ref.forward @ baseline, src.forward @ baseline])) / norm
+            if np.any(np.arccos(np.clip(cos_axes, 0.0, 1.0)) < min_axis):
+                continue
+            candidates.append((n_shared * min(1.0, angle / ideal), src.name))
+        candidates.sort(reverse=True)
+        partners[ref_name] = [name for _, name in candidates[:num_partners]]
+    return partners
+
+
+def rectify_pair(ref: View, src: View, disparity_offset: int = 0, pad_left: int = 0) -> RectifiedPair | None:
+    """Rectify ``src`` against ``ref`` (baseline along the rectified +x axis); None if degenerate.
+
+    The partner's rectified image is shifted right by ``disparity_offset`` pixels (so SGBM can
+    search from disparity 0) and the canvas gets ``pad_left`` empty columns on the left (SGBM
+    leaves its first ``numDisparities`` columns unmatched). ``H_*`` and ``K_rect`` describe the
+    reference; true disparity = SGBM disparity + ``disparity_offset``.
+    """
+    baseline_w = src.center - ref.center
+    baseline = float(np.linalg.norm(baseline_w))
+    if baseline == 0:
+        return None
+    x_axis = baseline_w / baseline
+    forward = ref.forward + src.forward
+    y_axis = np.cross(forward, x_axis)
+    if np.linalg.norm(y_axis) < 1e-6:
+        return None
+    y_axis /= np.linalg.norm(y_axis)
+    z_axis = np.cross(x_axis, y_axis)
+    rect_from_world = np.stack([x_axis, y_axis, z_axis])
+    f = float(ref.K[0, 0])
+    K0 = np.array([[f, 0.0, 0.0], [0.0, f, 0.0], [0.0, 0.0, 1.0]])
+    offset = np.array([[1.0, 0.0, float(disparity_offset)], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    H_ref0 = K0 @ rect_from_world @ ref.rotation.T @ np.linalg.inv(ref.K)
+    H_src0 = offset @ K0 @ rect_from_world @ src.rotation.T @ np.linalg.inv(src.K)
+    ref_corners = _warp_corners(H_ref0, ref.width, ref.height)
+    src_corners = _warp_corners(H_src0, src.width, src.height)
+    if ref_corners is None or src_corners is None:
+        return None
+    # Rows: the reference's; columns: both views', so matches near either edge stay in the image.
+    x_min = min(ref_corners[:, 0].min(), src_corners[:, 0].min()) - pad_left
+    x_max = max(ref_corners[:, 0].max(), src_corners[:, 0].max())
+    y_min, y_max = ref_corners[:, 1].min(), ref_corners[:, 1].max()
+    width, height = int(math.ceil(x_max - x_min)) + 1, int(math.ceil(y_max - y_min)) + 1
+    if width * height > _MAX_RECTIFIED_AREA_RATIO * ref.width * ref.height + pad_left * height:
+        return None
+    shift = np.array([[1.0, 0.0, -x_min], [0.0, 1.0, -y_min], [0.0, 0.0, 1.0]])
+    return RectifiedPair(shift @ H_ref0, shift @ H_src0, shift @ K0, rect_from_world, baseline, (width, height))
+
+
+def _warp_corners(H: np.ndarray, width: int, height: int) -> np.ndarray | None:
+    corners = np.array([[0, 0, 1], [width - 1, 0, 1], [width - 1, height - 1, 1], [0, height - 1, 1]], float)
+    mapped = corners @ H.T
+    if np.any(mapped[:, 2] <= 1e-9):
+        return None
+    return mapped[:, :2] / mapped[:, 2:]
+
+
+def disparity_search_range(pair: RectifiedPair, depth: np.ndarray, max_num_disparities: int):
+    """SGBM (min_disparity, num_disparities) covering sparse points at rectified depths ``depth`` (m).
+
+    The 2nd-98th percentile of their disparities, widened by 25 %; None with fewer than 5 points.
+    """
+    depth = depth[depth > 0]
+    if len(depth) < 5:
+        return None
+    disparity = pair.K_rect[0, 0] * pair.baseline / depth
+    d_lo, d_hi = np.percentile(disparity, [2.0, 98.0])
+    d_lo, d_hi = d_lo / 1.25, d_hi * 1.25
+    min_disp = int(math.floor(d_lo))
+    num = int(math.ceil((d_hi - min_disp) / 16.0)) * 16
+    return min_disp, int(min(max(num, 16), max_num_disparities))
+
+
+def pair_depth(
+    ref: View, src: View, ref_gray: np.ndarray, src_gray: np.ndarray, ref_points: np.ndarray, cfg: Mapping
+) -> np.ndarray | None:
+    """Depth (H, W) float32 in metres along the reference's optical axis from one stereo pair.
+
+    NaN where SGBM found no consistent match. ``ref_points`` (P, 3) are sparse world points seen by
+    the reference; they bound the disparity search. None if the pair cannot be rectified.
+    """
+    pair = rectify_pair(ref, src)
+    if pair is None:
+        return None
+    depth_rect = (ref_points - ref.center) @ pair.rect_from_world[2]
+    search = disparity_search_range(pair, depth_rect, int(cfg["max_num_disparities"]))
+    if search is None:
+        return None
+    min_disp, num_disp = search
+    pair = rectify_pair(ref, src, disparity_offset=min_disp, pad_left=num_disp)
+    if pair is None:
+        return None
+    width, height = pair.size
+    left = cv2.warpPerspective(ref_gray, pair.H_ref, (width, height), flags=cv2.INTER_LINEAR)
+    right = cv2.warpPerspective(src_gray, pair.H_src, (width, height), flags=cv2.INTER_LINEAR)
+    ones = np.full(src_gray.shape, 255, np.uint8)
+    right_valid = cv2.warpPerspective(ones, pair.H_src, (width, height), flags=cv2.INTER_NEAREST)
+
+    scfg = cfg["sgbm"]
+    block = int(scfg["block_size"])
+    sgbm = cv2.StereoSGBM.create(
+        minDisparity=0,
+        numDisparities=num_disp,
+        blockSize=block,
+        P1=8 * block * block,
+        P2=32 * block * block,
+        disp12MaxDiff=int(scfg["disp12_max_diff"]),
+        uniquenessRatio=int(scfg["uniqueness_ratio"]),
+        speckleWindowSize=int(scfg["speckle_window_size"]),
+        speckleRange=int(scfg["speckle_range"]),
+        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    )
+    disparity = sgbm.compute(left, right).astype(np.float32) / 16.0
+    valid = disparity >= 0.0
+    valid &= disparity + min_disp > 0.5
+    # The matched pixel must lie inside the partner's image (SGBM happily matches the black border).
+    rows, cols = np.nonzero(valid)
+    match_cols = np.round(cols - disparity[rows, cols]).astype(int)
+    inside = (match_cols >= 0) & (match_cols < width)
+    inside[inside] = right_valid[rows[inside], match_cols[inside]] > 0
+    valid[rows[~inside], cols[~inside]] = False
+    disparity[~valid] = 0.0
+
+    # Sample the disparity at every reference pixel; keep only pixels whose 4 neighbours are valid.
+    u, v = np.meshgrid(np.arange(ref.width, dtype=np.float64), np.arange(ref.height, dtype=np.float64))
+    pix = np.stack([u, v, np.ones_like(u)], -1) @ pair.H_ref.T
+    map_x = (pix[..., 0] / pix[..., 2]).astype(np.float32)
+    map_y = (pix[..., 1] / pix[..., 2]).astype(np.float32)
+    d_ref = cv2.remap(disparity, map_x, map_y, cv2.INTER_LINEAR, borderValue=0.0)
+    ok = cv2.remap(valid.astype(np.float32), map_x, map_y, cv2.INTER_LINEAR, borderValue=0.0) > 0.999
+    z_rect = np.full(d_ref.shape, np.nan, np.float32)
+    z_rect[ok] = pair.K_rect[0, 0] * pair.baseline / (d_ref[ok] + min_disp)
+    # Depth along the reference axis of the point at rectified depth z_rect on each reference ray.
+    rays_cam = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(ref.K).T
+    rays_world = rays_cam @ ref.rotation
+    scale = rays_world @ pair.rect_from_world[2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        depth = (z_rect / scale).astype(np.float32)
+    depth[~(depth > 0)] = np.nan
+    return depth
+
+
+def consistent_depth(depths: np.ndarray, min_consistent: int, rel_tol: float) -> np.ndarray:
+    """Combine per-partner depth maps (K, H, W) (NaN = none) into one (H, W) (NaN = rejected).
+
+    A pixel is kept when at least ``min(min_consistent, K)`` partners lie within ``rel_tol``
+    (relative) of the partners' median; its depth is the mean of those agreeing partners.
+    """
+    depths = np.asarray(depths, dtype=np.float32)
+    needed = max(1, min(int(min_consistent), depths.shape[0]))
+    # NaN-aware median without np.nanmedian's all-NaN warnings (warning filters are not thread-safe).
+    ordered = np.sort(depths, axis=0)
+    n_valid = np.isfinite(depths).sum(axis=0)
+    lo_idx = np.maximum(n_valid - 1, 0) // 2
+    hi_idx = n_valid // 2
+    hi_idx = np.minimum(hi_idx, depths.shape[0] - 1)
+    median = 0.5 * (
+        np.take_along_axis(ordered, lo_idx[None], 0)[0] + np.take_along_axis(ordered, hi_idx[None], 0)[0]
+    )
+    median[n_valid == 0] = np.nan
+    with np.errstate(invalid="ignore"):
+        agree = np.abs(depths - median) <= rel_tol * median
+    count = agree.sum(axis=0)
+    total = np.where(agree, depths, 0.0).sum(axis=0)
+    out = np.full(median.shape, np.nan, np.float32)
+    keep = count >= needed
+    out[keep] = total[keep] / count[keep]
+    return out
+
+
+def normals_from_depth(depth: np.ndarray, K: np.ndarray, window: int) -> np.ndarray:
+    """Unit normals (H, W, 3) in the camera frame from a depth map (NaN = none), facing the camera.
+
+    The back-projected points are box-filtered over ``window`` pixels before central differences
+    over ``window // 2`` pixels, so SGBM's sub-pixel noise does not dominate. Zero where undefined.
+    """
+    h, w = depth.shape
+    valid = np.isfinite(depth)
+    u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+    points = np.where(valid[..., None], rays * np.nan_to_num(depth)[..., None], 0.0).astype(np.float32)
+    k = max(1, int(window))
+    weight = cv2.boxFilter(valid.astype(np.float32), -1, (k, k), normalize=False)
+    summed = cv2.boxFilter(points, -1, (k, k), normalize=False)
+    full = weight >= 0.999 * k * k
+    smooth = summed / np.maximum(weight, 1.0)[..., None]
+    s = max(1, k // 2)
+    du = np.zeros_like(smooth)
+    dv = np.zeros_like(smooth)
+    du[:, s:-s] = smooth[:, 2 * s :] - smooth[:, : -2 * s]
+    dv[s:-s, :] = smooth[2 * s :, :] - smooth[: -2 * s, :]
+    ok = np.zeros_like(full)
+    ok[s:-s, s:-s] = full[s:-s, 2 * s :] & full[s:-s, : -2 * s] & full[2 * s :, s:-s] & full[: -2 * s, s:-s]
+    ok &= valid
+    normals = np.cross(dv, du)
+    norm = np.linalg.norm(normals, axis=-1)
+    ok &= norm > 0
+    normals[ok] /= norm[ok][:, None]
+    facing_away = np.einsum("hwc,hwc->hw", normals, rays) > 0
+    normals[facing_away] *= -1.0
+    normals[~ok] = 0.0
+    return normals.astype(np.float32)
+
+
+def write_maps(workspace: Path, name: str, depth: np.ndarray, normals: np.ndarray) -> None:
+    """Write a geometric depth map (0 = none) and normal map in COLMAP's format, atomically."""
+    stereo = Path(workspace) / "stereo"
+    depth = np.where(np.isfinite(depth) & np.any(normals != 0, axis=-1), depth, 0.0).astype(np.float32)
+    positive = depth[depth > 0]
+    lo, hi = (float(positive.min()), float(positive.max())) if len(positive) else (0.0, 1.0)
+    depth_map = pycolmap.DepthMap.from_array(depth, lo, hi)
+    normals = np.where((depth > 0)[..., None], normals, 0.0).astype(np.float32)
+    # pycolmap 4.0.4's NormalMap.from_array copies the (H, W, 3) buffer verbatim, but COLMAP stores
+    # maps channel by channel: hand it the planar buffer (tests/test_reconstruct.py checks the file).
+    planar = np.ascontiguousarray(normals.transpose(2, 0, 1)).reshape(normals.shape)
+    normal_map = pycolmap.NormalMap.from_array(planar)
+    write_atomic(stereo / "depth_maps" / f"{name}{DEPTH_SUFFIX}", lambda p: depth_map.write(p))
+    write_atomic(stereo / "normal_maps" / f"{name}{DEPTH_SUFFIX}", lambda p: normal_map.write(p))
+
+
+def compute_depth_maps_cpu(workspace: Path, cfg: Mapping) -> dict[str, int]:
+    """CPU back-end: SGBM depth + normal maps for every view that has partners; return valid-pixel counts."""
+    workspace = Path(workspace)
+    views = read_views(workspace)
+    partners = select_partners(workspace, views, cfg)
+    rec = pycolmap.Reconstruction(workspace / "sparse")
+    points_by_name = {}
+    for image_id in rec.reg_image_ids():
+        image = rec.image(image_id)
+        ids = [p.point3D_id for p in image.points2D if p.has_point3D()]
+        points_by_name[image.name] = (
+            np.array([rec.point3D(i).xyz for i in ids]) if ids else np.zeros((0, 3))
+        )
+    min_consistent = int(cfg["min_consistent_partners"])
+    rel_tol = float(cfg["consistency_rel_tol"])
+    window = int(cfg["normal_window_px"])
+
+    def gray(name: str) -> np.ndarray:
+        image = cv2.imread(str(workspace / "images" / name), cv2.IMREAD_GRAYSCALE)
+        if image is None:
+            raise ValueError(f"{workspace / 'images' / name}: unreadable image")
+        return image
+
+    def one_view(name: str) -> tuple[str, int]:
+        ref = views[name]
+        if not partners.get(name):
+            return name, 0
+        ref_gray = gray(name)
+        depths = []
+        for src_name in partners[name]:
+            depth = pair_depth(ref, views[src_name], ref_gray, gray(src_name), points_by_name[name], cfg)
+            if depth is not None:
+                depths.append(depth)
+        if not depths:
+            return name, 0
+        depth = consistent_depth(np.stack(depths), min_consistent, rel_tol)
+        normals = normals_from_depth(depth, ref.K, window)
+        write_maps(workspace, name, depth, normals)
+        return name, int(np.count_nonzero(np.any(normals != 0, axis=-1)))
+
+    threads = int(cfg.get("num_threads", -1))
+    threads = os.cpu_count() or 1 if threads <= 0 else threads
+    names = sorted(views)
+    n_without = sum(1 for n in names if not partners.get(n))
+    if n_without:
+        log.info("%d of %d views have no stereo partner", n_without, len(names))
+    valid_pixels = {}
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        for name, count in tqdm(pool.map(one_view, names), total=len(names), desc="stereo (SGBM)", unit="view"):
+            valid_pixels[name] = count
+    return valid_pixels
+
+
+def compute_depth_maps_cuda(workspace: Path, cfg: Mapping) -> dict[str, int]:
+    """CUDA back-end: ``pycolmap.patch_match_stereo`` with geometric consistency."""
+    pcfg = cfg["patch_match"]
+    options = pycolmap.PatchMatchOptions()
+    options.max_image_size = int(cfg["max_image_size"])
+    options.window_radius = int(pcfg["window_radius"])
+    options.num_iterations = int(pcfg["num_iterations"])
+    options.geom_consistency = True
+    options.min_triangulation_angle = float(cfg["min_triangulation_angle_deg"])
+    pycolmap.patch_match_stereo(workspace, workspace_format="COLMAP", options=options)
+    depth_dir = Path(workspace) / "stereo" / "depth_maps"
+    return {p.name[: -len(DEPTH_SUFFIX)]: 1 for p in depth_dir.glob(f"*{DEPTH_SUFFIX}")}
+
+
+def fuse(workspace: Path, output_ply: Path, cfg: Mapping, names) -> int:
+    """Fuse the workspace's geometric depth/normal maps of ``names`` into ``output_ply``; return the
+    number of fused points. The PLY carries positions, normals and colours (model frame, metres).
+    """
+    workspace = Path(workspace)
+    write_text_atomic(workspace / "stereo" / "fusion.cfg", "".join(f"{n}\n" for n in sorted(names)))
+    fcfg = cfg["fusion"]
+    options = pycolmap.StereoFusionOptions()
+    options.min_num_pixels = int(fcfg["min_num_pixels"])
+    options.max_reproj_error = float(fcfg["max_reproj_error"])
+    options.max_depth_error = float(fcfg["max_depth_error"])
+    options.max_normal_error = float(fcfg["max_normal_error"])
+    options.max_image_size = int(cfg["max_image_size"])
+    fused = pycolmap.stereo_fusion(output_ply, workspace, workspace_format="COLMAP", input_type="geometric",
+                                   options=options, output_type="PLY")
+    return int(fused.num_points3D()) if hasattr(fused, "num_points3D") else -1
+
+
+def dense_reconstruct(sparse_dir: Path, image_dir: Path, out_dir: Path, cfg: Mapping) -> dict:
+    """Workspace, depth maps (CPU or CUDA back-end) and fusion into ``out_dir/dense.ply``.
+
+    Args:
+        sparse_dir: the (aligned) sparse model.
+        image_dir: the flight's images.
+        out_dir: where ``dense/`` (the workspace) and ``dense.ply`` go.
+        cfg: the ``reconstruct.dense`` config.
+
+    Returns:
+        ``backend``, ``dense_time_s`` (s), ``n_depth_maps``, ``n_dense_points``, ``dense_path``.
+    """
+    backend = select_backend(str(cfg["backend"]))
+    start = time.perf_counter()
+    workspace = prepare_workspace(Path(sparse_dir), Path(image_dir), Path(out_dir) / "dense", cfg)
+    log.info("dense: %s back-end", backend)
+    if backend == "cuda":
+        valid = compute_depth_maps_cuda(workspace, cfg)
+    else:
+        valid = compute_depth_maps_cpu(workspace, cfg)
+    names = [n for n, count in valid.items() if count > 0]
+    output_ply = Path(out_dir) / "dense.ply"
+    n_points = 0
+    if names:
+        n_points = _fuse_atomic(workspace, output_ply, cfg, names)
+    return {
+        "backend": backend,
+        "dense_time_s": time.perf_counter() - start,
+        "n_depth_maps": len(names),
+        "n_dense_points": n_points,
+        "dense_path": str(output_ply) if names else None,
+    }
+
+
+def _fuse_atomic(workspace: Path, output_ply: Path, cfg: Mapping, names) -> int:
+    holder = {}
+
+    def writer(tmp: Path) -> None:
+        holder["n"] = fuse(workspace, tmp, cfg, names)
+
+    write_atomic(output_ply, writer)
+    return holder["n"]

@@ -1,0 +1,282 @@
+"""The reconstruction stage end to end: a rendered flight in, a sparse model, a dense cloud and (for
+the exploratory flight) a proxy mesh out, with content-hash caching and COLMAP's log in the output.
+
+    reconstruct_flight(image_dir, out_dir, cfg, seed) -> record        # SfM, alignment, dense
+    build_proxy(image_dir, cache_dir, cfg, seed) -> (mesh, record)      # + Poisson proxy
+
+Output folder of ``reconstruct_flight``::
+
+    database.db    COLMAP database (features, matches, GNSS pose priors)
+    sparse/        the largest model, aligned to the world frame (COLMAP binary)
+    dense/         COLMAP dense workspace (undistorted images, depth and normal maps)
+    dense.ply      fused dense cloud in the world frame
+    gnss.json      the simulated GNSS positions used as priors
+    colmap.log.*   COLMAP's log
+    recon.json     the record below plus the content key of the inputs
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import shutil
+import time
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import trimesh
+
+from reconstruct.align import align_to_gnss, pose_errors
+from reconstruct.dense import dense_reconstruct
+from reconstruct.errors import ReconstructionError
+from reconstruct.flight import CAMERAS_FILE, Flight, read_flight, simulate_gnss
+from reconstruct.proxy import poisson_proxy
+from reconstruct.sfm import run_sfm
+from scene.base import Box
+from scene.io import write_atomic, write_json_atomic
+
+log = logging.getLogger(__name__)
+
+RECORD_FILE = "recon.json"
+PROXY_FILE = "proxy.ply"
+PROXY_RECORD_FILE = "proxy.json"
+# The config sections a flight's reconstruction depends on (the proxy section does not matter here).
+FLIGHT_CONFIG_KEYS = ("min_images", "min_registered_fraction", "gnss", "sfm", "align", "dense")
+
+
+def _plain(value):
+    """A JSON-able copy of a Mapping/DictConfig section."""
+    try:
+        from omegaconf import DictConfig, ListConfig, OmegaConf
+
+        if isinstance(value, DictConfig | ListConfig):
+            return OmegaConf.to_container(value, resolve=True)
+    except ImportError:  # pragma: no cover - omegaconf comes with hydra
+        pass
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    return value
+
+
+def flight_content_key(image_dir: Path, flight: Flight, cfg: Mapping, seed: int) -> str:
+    """SHA-256 over the image bytes, ``cameras.json``, the relevant config, the seed and pycolmap's version."""
+    digest = hashlib.sha256()
+    config = {key: _plain(cfg[key]) for key in FLIGHT_CONFIG_KEYS}
+    header = {"config": config, "seed": int(seed), "pycolmap": pycolmap.__version__}
+    digest.update(json.dumps(header, sort_keys=True).encode())
+    digest.update((Path(image_dir) / CAMERAS_FILE).read_bytes())
+    for name in flight.names:
+        digest.update(name.encode() + b"\0")
+        digest.update((Path(image_dir) / name).read_bytes())
+    return digest.hexdigest()
+
+
+def _cached_record(out_dir: Path, key: str, record_file: str, outputs) -> dict | None:
+    path = out_dir / record_file
+    if not path.is_file():
+        return None
+    try:
+        record = json.loads(path.read_text())
+    except json.JSONDecodeError:
+        return None
+    if record.get("content_key") != key or record.get("status") != "ok":
+        return None
+    if not all((out_dir / name).exists() for name in outputs):
+        return None
+    return record
+
+
+@contextmanager
+def colmap_log_to(out_dir: Path) -> Iterator[None]:
+    """Route COLMAP's (glog) log into ``out_dir/colmap.log.<timestamp>.<pid>`` for the block.
+
+    Every severity goes into the one INFO file; errors still reach stderr.
+    """
+    logging_ = pycolmap.logging
+    saved = (logging_.logtostderr, logging_.alsologtostderr)
+    logging_.logtostderr = False
+    logging_.alsologtostderr = False
+    for level in (logging_.WARNING, logging_.ERROR, logging_.FATAL):
+        logging_.set_log_destination(level, "")
+    logging_.set_log_destination(logging_.INFO, str(Path(out_dir) / "colmap.log."))
+    try:
+        yield
+    finally:
+        # An empty destination closes the run's file (glog: "don't log this severity to a file").
+        logging_.set_log_destination(logging_.INFO, "")
+        logging_.logtostderr, logging_.alsologtostderr = saved
+
+
+def reconstruct_flight(image_dir, out_dir, cfg: Mapping, seed: int) -> dict:
+    """SfM with GNSS priors, similarity alignment to GNSS, dense depth + fusion for one flight.
+
+    Skipped (the stored record is returned, ``cached`` True) when ``out_dir/recon.json`` holds the
+    same content key: image bytes, ``cameras.json``, the relevant ``reconstruct`` settings, seed.
+
+    Args:
+        image_dir: the renderer's output (images + ``cameras.json``).
+        out_dir: output folder (see the module docstring for its layout).
+        cfg: the ``reconstruct`` config.
+        seed: seed of the GNSS noise, RANSAC and the mapper.
+
+    Returns:
+        A flat record: ``status``, ``n_images``, ``n_registered``, ``registered_fraction``, pose
+        errors (m, deg), ``extraction_time_s``, ``matching_time_s``, ``mapping_time_s``,
+        ``align_time_s`` (their sum), ``dense_time_s``, ``n_dense_points``, ``dense_ply``,
+        ``sparse_dir``, ``database``, ``colmap_log``, ``cached``.
+
+    Raises:
+        ReconstructionError: too few images, no features, too small a registered fraction, failed
+            alignment, or no dense points; its ``record`` carries the failure for ``metrics.json``.
+    """
+    image_dir, out_dir = Path(image_dir), Path(out_dir)
+    flight = read_flight(image_dir)
+    min_images = int(cfg["min_images"])
+    if len(flight) < max(min_images, 2):
+        raise ReconstructionError(
+            f"{image_dir}: {len(flight)} images, the reconstruction needs at least {max(min_images, 2)}",
+            {"stage": "input", "n_images": len(flight), "n_registered": 0, "registered_fraction": 0.0},
+        )
+    key = flight_content_key(image_dir, flight, cfg, seed)
+    cached = _cached_record(out_dir, key, RECORD_FILE, ("sparse", "dense.ply", "database.db"))
+    if cached is not None:
+        log.info("reconstruction of %s unchanged: reusing %s", image_dir, out_dir)
+        return cached | {"cached": True}
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / RECORD_FILE).unlink(missing_ok=True)
+    for old_log in out_dir.glob("colmap.log.*"):
+        old_log.unlink()
+
+    sigma = float(cfg["gnss"]["sigma_m"])
+    gnss = simulate_gnss(flight.positions, sigma, seed)
+    write_json_atomic(out_dir / "gnss.json", {"sigma_m": sigma, "seed": int(seed),
+                                              "positions": dict(zip(flight.names, gnss.tolist(), strict=True))})
+    record: dict = {"status": "running", "n_images": len(flight), "gnss_sigma_m": sigma}
+    try:
+        with colmap_log_to(out_dir):
+            record |= _reconstruct(flight, out_dir, gnss, sigma, cfg, seed, record)
+    except ReconstructionError as exc:
+        exc.record = record | {"status": "failed", "cached": False} | exc.record
+        write_json_atomic(out_dir / RECORD_FILE, exc.record | {"content_key": key})
+        raise
+    record |= {"status": "ok", "cached": False, "colmap_log": _newest_log(out_dir), "content_key": key}
+    write_json_atomic(out_dir / RECORD_FILE, record)
+    return record
+
+
+def _reconstruct(flight: Flight, out_dir: Path, gnss: np.ndarray, sigma: float, cfg: Mapping, seed: int,
+                 record: dict) -> dict:
+    sfm = run_sfm(flight, out_dir, gnss, sigma, cfg["sfm"], seed)
+    times = {f"{k}_time_s": v for k, v in sfm.times_s.items()}
+    record |= times | {"align_time_s": sum(sfm.times_s.values()), "matching_method": sfm.matching_method,
+                       "n_models": sfm.n_models, "database": str(out_dir / "database.db")}
+    rec = sfm.reconstruction
+    n_reg = rec.num_reg_images()
+    fraction = n_reg / len(flight)
+    record |= {"n_registered": n_reg, "registered_fraction": fraction}
+    min_fraction = float(cfg["min_registered_fraction"])
+    if fraction < min_fraction:
+        raise ReconstructionError(
+            f"{flight.image_dir}: only {n_reg} of {len(flight)} images registered ({fraction:.1%} < "
+            f"reconstruct.min_registered_fraction {min_fraction:.0%})",
+            {"stage": "mapping"},
+        )
+    start = time.perf_counter()
+    align_to_gnss(rec, flight.names, gnss, sigma, cfg["align"], seed)
+    record["similarity_time_s"] = time.perf_counter() - start
+    record |= pose_errors(rec, flight)
+    log.info(
+        "registered %d/%d, camera position error median %.3f m (p90 %.3f m), rotation %.3f deg",
+        n_reg, len(flight), record["position_error_median_m"], record["position_error_p90_m"],
+        record["rotation_error_median_deg"],
+    )
+    sparse_dir = out_dir / "sparse"
+    _write_model_atomic(rec, sparse_dir)
+    record["sparse_dir"] = str(sparse_dir)
+    record["n_sparse_points"] = int(rec.num_points3D())
+
+    dense = dense_reconstruct(sparse_dir, flight.image_dir, out_dir, cfg["dense"])
+    record |= {"dense_backend": dense["backend"], "dense_time_s": dense["dense_time_s"],
+               "n_depth_maps": dense["n_depth_maps"], "n_dense_points": dense["n_dense_points"]}
+    if dense["dense_path"] is None or dense["n_dense_points"] == 0:
+        raise ReconstructionError(f"{flight.image_dir}: dense reconstruction produced no points", {"stage": "dense"})
+    record["dense_ply"] = dense["dense_path"]
+    log.info("dense: %d points from %d depth maps in %.1f s", dense["n_dense_points"], dense["n_depth_maps"],
+             dense["dense_time_s"])
+    return record
+
+
+def _write_model_atomic(rec: pycolmap.Reconstruction, sparse_dir: Path) -> None:
+    tmp = sparse_dir.with_name(sparse_dir.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    rec.write(tmp)
+    shutil.rmtree(sparse_dir, ignore_errors=True)
+    tmp.rename(sparse_dir)
+
+
+def _newest_log(out_dir: Path) -> str | None:
+    logs = sorted(out_dir.glob("colmap.log.*"), key=lambda p: p.stat().st_mtime)
+    return str(logs[-1]) if logs else None
+
+
+def proxy_bounds(sparse_dir: Path, margin_m: float) -> Box:
+    """Region a proxy is cut to: the registered cameras' box, grown by ``margin_m`` sideways and
+    reaching down to the lowest sparse point (the ground) minus the margin.
+    """
+    rec = pycolmap.Reconstruction(sparse_dir)
+    centers = np.array([rec.image(i).projection_center() for i in rec.reg_image_ids()])
+    points = np.array([p.xyz for p in rec.points3D.values()]) if rec.num_points3D() else centers
+    lo = np.minimum(centers.min(0), np.percentile(points, 1.0, axis=0))
+    hi = centers.max(0)
+    return Box(tuple(lo.tolist()), tuple(hi.tolist())).expanded(margin_m, margin_m, margin_m)
+
+
+def build_proxy(image_dir, cache_dir, cfg: Mapping, seed: int) -> tuple[trimesh.Trimesh, dict]:
+    """Reconstruct the exploratory flight and mesh its dense cloud into the planners' proxy.
+
+    Both steps are cached under ``cache_dir`` (``recon.json``, ``proxy.json`` keyed by content), so
+    every planner of a scene shares one proxy. A flight whose registered fraction is below
+    ``proxy.min_registered_fraction`` raises: no proxy is built from a partial model.
+
+    Args:
+        image_dir: the exploratory flight's images + ``cameras.json``.
+        cache_dir: output folder of the reconstruction and the proxy.
+        cfg: the ``reconstruct`` config.
+        seed: seed of the reconstruction.
+
+    Returns:
+        (proxy mesh in world metres, record of the reconstruction + ``proxy_faces``,
+        ``proxy_time_s``, ``proxy_path``).
+    """
+    cache_dir = Path(cache_dir)
+    pcfg = cfg["proxy"]
+    recon = reconstruct_flight(image_dir, cache_dir, cfg, seed)
+    min_fraction = float(pcfg["min_registered_fraction"])
+    if recon["registered_fraction"] < min_fraction:
+        raise ReconstructionError(
+            f"{image_dir}: exploratory flight registered {recon['registered_fraction']:.1%} < "
+            f"reconstruct.proxy.min_registered_fraction {min_fraction:.0%}; refusing a proxy from a partial model",
+            recon | {"status": "failed", "stage": "proxy"},
+        )
+    key = hashlib.sha256(
+        json.dumps({"recon": recon["content_key"], "proxy": _plain(pcfg)}, sort_keys=True).encode()
+    ).hexdigest()
+    cached = _cached_record(cache_dir, key, PROXY_RECORD_FILE, (PROXY_FILE,))
+    if cached is not None:
+        log.info("proxy unchanged: reusing %s", cache_dir / PROXY_FILE)
+        mesh = trimesh.load(cache_dir / PROXY_FILE, force="mesh", process=False)
+        return mesh, recon | cached | {"proxy_cached": True}
+    start = time.perf_counter()
+    bounds = proxy_bounds(Path(recon["sparse_dir"]), float(pcfg["crop_margin_m"]))
+    mesh = poisson_proxy(recon["dense_ply"], bounds, cfg)
+    write_atomic(cache_dir / PROXY_FILE, lambda p: mesh.export(p))
+    proxy_record = {"status": "ok", "proxy_faces": len(mesh.faces), "proxy_time_s": time.perf_counter() - start,
+                    "proxy_path": str(cache_dir / PROXY_FILE)}
+    write_json_atomic(cache_dir / PROXY_RECORD_FILE, proxy_record | {"content_key": key})
+    log.info("proxy: %d faces in %.1f s", len(mesh.faces), proxy_record["proxy_time_s"])
+    return mesh, recon | proxy_record | {"proxy_cached": False}

@@ -1,0 +1,266 @@
+"""Structure from motion with pycolmap: SIFT extraction, matching, mapping, GNSS pose priors.
+
+Each stage is a plain function on a COLMAP database; ``sfm_options`` is the one place where the
+``reconstruct.sfm`` config becomes pycolmap option objects.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import tempfile
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from reconstruct.errors import ReconstructionError
+from reconstruct.flight import Flight
+
+log = logging.getLogger(__name__)
+
+MATCHING_METHODS = ("auto", "exhaustive", "spatial", "sequential")
+MAPPING_METHODS = ("incremental", "global")
+
+
+@dataclass
+class SfmOptions:
+    """pycolmap option objects for every SfM stage (built by ``sfm_options``)."""
+
+    extraction: pycolmap.FeatureExtractionOptions
+    matching: pycolmap.FeatureMatchingOptions
+    verification: pycolmap.TwoViewGeometryOptions
+    exhaustive: pycolmap.ExhaustivePairingOptions
+    spatial: pycolmap.SpatialPairingOptions
+    sequential: pycolmap.SequentialPairingOptions
+    incremental: pycolmap.IncrementalPipelineOptions
+    global_: pycolmap.GlobalPipelineOptions
+    matching_method: str
+    exhaustive_max_images: int
+    mapping_method: str
+
+
+@dataclass
+class SfmResult:
+    """The largest model SfM recovered (in its own arbitrary frame) and the stage wall times (s)."""
+
+    reconstruction: pycolmap.Reconstruction
+    matching_method: str
+    times_s: dict = field(default_factory=dict)
+    n_models: int = 0
+
+
+def sfm_options(cfg: Mapping, seed: int = 0) -> SfmOptions:
+    """Map the ``reconstruct.sfm`` config onto pycolmap options (the one place this is done)."""
+    ecfg, mcfg, pcfg = cfg["extraction"], cfg["matching"], cfg["mapping"]
+    threads = int(cfg.get("num_threads", -1))
+    matching_method = str(mcfg["method"])
+    if matching_method not in MATCHING_METHODS:
+        raise ValueError(f"reconstruct.sfm.matching.method must be one of {MATCHING_METHODS}, got {matching_method!r}")
+    mapping_method = str(pcfg["method"])
+    if mapping_method not in MAPPING_METHODS:
+        raise ValueError(f"reconstruct.sfm.mapping.method must be one of {MAPPING_METHODS}, got {mapping_method!r}")
+
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = threads
+    extraction.max_image_size = int(ecfg["max_image_size"])
+    extraction.sift.max_num_features = int(ecfg["max_num_features"])
+
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = threads
+    matching.guided_matching = bool(mcfg["guided_matching"])
+    matching.sift.max_ratio = float(mcfg["max_ratio"])
+
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = int(seed)
+
+    exhaustive = pycolmap.ExhaustivePairingOptions()
+    spatial = pycolmap.SpatialPairingOptions()
+    # Survey flights are 3-D (oblique rings, facades): neighbours by full 3-D distance.
+    spatial.ignore_z = False
+    spatial.max_num_neighbors = int(mcfg["spatial_max_num_neighbors"])
+    max_distance = float(mcfg["spatial_max_distance_m"])
+    spatial.max_distance = max_distance if max_distance > 0 else 1e12
+    spatial.num_threads = threads
+    sequential = pycolmap.SequentialPairingOptions()
+    sequential.overlap = int(mcfg["sequential_overlap"])
+    sequential.num_threads = threads
+
+    incremental = pycolmap.IncrementalPipelineOptions()
+    incremental.num_threads = threads
+    incremental.random_seed = int(seed)
+    incremental.min_model_size = int(pcfg["min_model_size"])
+    incremental.ba_refine_focal_length = bool(pcfg["refine_focal_length"])
+    incremental.ba_refine_principal_point = bool(pcfg["refine_principal_point"])
+    incremental.ba_refine_extra_params = bool(pcfg["refine_extra_params"])
+    incremental.mapper.abs_pose_refine_focal_length = bool(pcfg["refine_focal_length"])
+    incremental.mapper.abs_pose_refine_extra_params = bool(pcfg["refine_extra_params"])
+    incremental.use_prior_position = bool(pcfg["use_prior_position"])
+    incremental.use_robust_loss_on_prior_position = bool(pcfg["use_prior_position"])
+
+    global_ = pycolmap.GlobalPipelineOptions()
+    global_.num_threads = threads
+    global_.random_seed = int(seed)
+    global_.mapper.random_seed = int(seed)
+    global_.mapper.bundle_adjustment.refine_focal_length = bool(pcfg["refine_focal_length"])
+    global_.mapper.bundle_adjustment.refine_principal_point = bool(pcfg["refine_principal_point"])
+    global_.mapper.bundle_adjustment.refine_extra_params = bool(pcfg["refine_extra_params"])
+
+    return SfmOptions(
+        extraction=extraction,
+        matching=matching,
+        verification=verification,
+        exhaustive=exhaustive,
+        spatial=spatial,
+        sequential=sequential,
+        incremental=incremental,
+        global_=global_,
+        matching_method=matching_method,
+        exhaustive_max_images=int(mcfg["exhaustive_max_images"]),
+        mapping_method=mapping_method,
+    )
+
+
+def extract_features(database_path: Path, flight: Flight, options: SfmOptions) -> dict[str, int]:
+    """Import the flight's images with the known PINHOLE camera and extract SIFT into the database.
+
+    Returns:
+        keypoint count per image name.
+    """
+    intr = flight.intrinsics
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "PINHOLE"
+    reader.camera_params = ",".join(repr(float(v)) for v in (intr.focal_px, intr.focal_px, intr.cx, intr.cy))
+    log.info("extracting SIFT features from %d images", len(flight))
+    pycolmap.extract_features(
+        database_path,
+        flight.image_dir,
+        image_names=list(flight.names),
+        camera_mode=pycolmap.CameraMode.SINGLE,
+        reader_options=reader,
+        extraction_options=options.extraction,
+        device=pycolmap.Device.auto,
+    )
+    with pycolmap.Database.open(database_path) as db:
+        return {image.name: db.num_keypoints_for_image(image.image_id) for image in db.read_all_images()}
+
+
+def write_pose_priors(database_path: Path, names, positions: np.ndarray, sigma_m: float) -> int:
+    """Write GNSS position priors (metres, Cartesian world frame) for the named images; return the count.
+
+    ``sigma_m`` sets the isotropic position covariance (floored at 1 mm so that it stays invertible).
+    """
+    position_by_name = {str(n): np.asarray(p, dtype=float) for n, p in zip(names, positions, strict=True)}
+    std = max(float(sigma_m), 1e-3)
+    count = 0
+    with pycolmap.Database.open(database_path) as db:
+        db.clear_pose_priors()
+        for image in db.read_all_images():
+            if image.name not in position_by_name:
+                continue
+            prior = pycolmap.PosePrior()
+            prior.position = position_by_name[image.name]
+            prior.position_covariance = np.eye(3) * std**2
+            prior.coordinate_system = pycolmap.PosePriorCoordinateSystem.CARTESIAN
+            prior.corr_data_id = image.data_id
+            db.write_pose_prior(prior)
+            count += 1
+    return count
+
+
+def match_features(database_path: Path, n_images: int, options: SfmOptions) -> str:
+    """Match features and verify the pairs geometrically; return the pairing method used.
+
+    ``auto`` pairs exhaustively up to ``exhaustive_max_images`` images, then spatially (neighbours
+    by GNSS prior position, full 3-D distance).
+    """
+    method = options.matching_method
+    if method == "auto":
+        method = "exhaustive" if n_images <= options.exhaustive_max_images else "spatial"
+    log.info("matching %d images (%s pairing)", n_images, method)
+    common = {
+        "matching_options": options.matching,
+        "verification_options": options.verification,
+        "device": pycolmap.Device.auto,
+    }
+    if method == "exhaustive":
+        pycolmap.match_exhaustive(database_path, pairing_options=options.exhaustive, **common)
+    elif method == "spatial":
+        pycolmap.match_spatial(database_path, pairing_options=options.spatial, **common)
+    else:
+        pycolmap.match_sequential(database_path, pairing_options=options.sequential, **common)
+    return method
+
+
+def map_reconstruction(database_path: Path, image_dir: Path, options: SfmOptions) -> tuple[pycolmap.Reconstruction, int]:
+    """Run the mapper (incremental or global); return the model with most registered images and the
+    number of models found. Raise ReconstructionError when no model is found.
+    """
+    log.info("mapping (%s)", options.mapping_method)
+    with tempfile.TemporaryDirectory(prefix="mapper_", dir=Path(database_path).parent) as tmp:
+        if options.mapping_method == "incremental":
+            models = pycolmap.incremental_mapping(database_path, image_dir, tmp, options=options.incremental)
+        else:
+            models = pycolmap.global_mapping(database_path, image_dir, tmp, options=options.global_)
+    if not models:
+        raise ReconstructionError("the mapper found no model (no image pair could be initialised)",
+                                  {"stage": "mapping", "n_registered": 0, "registered_fraction": 0.0})
+    best = max(models.values(), key=lambda rec: rec.num_reg_images())
+    return best, len(models)
+
+
+def run_sfm(
+    flight: Flight, work_dir: Path, gnss_positions: np.ndarray, gnss_sigma_m: float, cfg: Mapping, seed: int
+) -> SfmResult:
+    """Extraction, pose priors, matching and mapping into ``work_dir/database.db``.
+
+    Args:
+        flight: the images and the known camera.
+        work_dir: output folder; the database is rebuilt from scratch.
+        gnss_positions: (N, 3) simulated GNSS positions in metres, one per image of ``flight``.
+        gnss_sigma_m: their standard deviation in metres (the prior covariance).
+        cfg: the ``reconstruct.sfm`` config.
+        seed: seed of COLMAP's RANSAC and mapper.
+
+    Returns:
+        The largest model (arbitrary frame) and wall times in seconds of ``extraction``, ``matching``
+        and ``mapping``.
+    """
+    options = sfm_options(cfg, seed)
+    pycolmap.set_random_seed(int(seed))
+    work_dir = Path(work_dir)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    database_path = work_dir / "database.db"
+    for stale in (database_path, work_dir / "database.db-wal", work_dir / "database.db-shm"):
+        stale.unlink(missing_ok=True)
+    times: dict[str, float] = {}
+
+    start = time.perf_counter()
+    keypoints = extract_features(database_path, flight, options)
+    times["extraction"] = time.perf_counter() - start
+    n_with_features = sum(1 for n in keypoints.values() if n > 0)
+    log.info("extraction: %.1f s, %d of %d images have features (median %d keypoints)",
+             times["extraction"], n_with_features, len(flight), int(np.median(list(keypoints.values()) or [0])))
+    if n_with_features < 2:
+        raise ReconstructionError(
+            f"{flight.image_dir}: only {n_with_features} of {len(flight)} images have SIFT features",
+            {"stage": "extraction", "n_images": len(flight), "n_images_with_features": n_with_features,
+             "n_registered": 0, "registered_fraction": 0.0},
+        )
+    write_pose_priors(database_path, flight.names, gnss_positions, gnss_sigma_m)
+
+    start = time.perf_counter()
+    method = match_features(database_path, len(flight), options)
+    times["matching"] = time.perf_counter() - start
+    log.info("matching: %.1f s", times["matching"])
+
+    start = time.perf_counter()
+    reconstruction, n_models = map_reconstruction(database_path, flight.image_dir, options)
+    times["mapping"] = time.perf_counter() - start
+    log.info("mapping: %.1f s, %d model(s), largest has %d of %d images",
+             times["mapping"], n_models, reconstruction.num_reg_images(), len(flight))
+    shutil.rmtree(work_dir / "mapper", ignore_errors=True)
+    return SfmResult(reconstruction, method, times, n_models)

@@ -1,0 +1,58 @@
+"""The stage cache builds an entry once, even with concurrent builders, and never trusts half entries."""
+
+import json
+import multiprocessing as mp
+import time
+from pathlib import Path
+
+import pytest
+
+from experiments.cache import MARKER, cache_key, cached_entry
+
+
+def _build_slowly(cache_dir: str, counter: str) -> str:
+    def build(entry: Path) -> dict:
+        with open(counter, "a") as f:
+            f.write("built\n")
+        time.sleep(0.5)
+        (entry / "out.txt").write_text("proxy")
+        return {"value": 7}
+
+    entry, record = cached_entry(cache_dir, "proxy", "k1", build)
+    return json.dumps([str(entry), record["value"], record["cache_hit"]])
+
+
+def test_concurrent_builders_build_once(tmp_path):
+    counter = tmp_path / "count.txt"
+    ctx = mp.get_context("fork")
+    with ctx.Pool(3) as pool:
+        results = [json.loads(r) for r in pool.starmap(_build_slowly, [(str(tmp_path), str(counter))] * 3)]
+    assert counter.read_text().count("built") == 1
+    assert sorted(r[2] for r in results) == [False, True, True]
+    assert {r[1] for r in results} == {7}
+    assert (Path(results[0][0]) / "out.txt").read_text() == "proxy"
+
+
+def test_failed_build_leaves_nothing_and_incomplete_entry_is_rebuilt(tmp_path):
+    def failing(entry: Path) -> dict:
+        (entry / "half.txt").write_text("half")
+        raise RuntimeError("boom")
+
+    with pytest.raises(RuntimeError, match="boom"):
+        cached_entry(tmp_path, "proxy", "k2", failing)
+    assert not (tmp_path / "proxy" / "k2").exists()
+
+    # an entry without its marker (a killed run) is discarded, not trusted
+    stale = tmp_path / "proxy" / "k2"
+    stale.mkdir(parents=True)
+    (stale / "half.txt").write_text("half")
+    entry, record = cached_entry(tmp_path, "proxy", "k2", lambda e: {"n": 1})
+    assert record == {"n": 1, "built_s": pytest.approx(record["built_s"]), "cache_hit": False}
+    assert not (entry / "half.txt").exists()
+    assert (entry / MARKER).is_file()
+
+
+def test_cache_key_depends_on_content_only():
+    assert cache_key({"a": 1, "b": [1, 2]}) == cache_key({"b": [1, 2], "a": 1})
+    assert cache_key({"a": 1}) != cache_key({"a": 2})
+    assert len(cache_key("x")) == 16

@@ -1,0 +1,505 @@
+"""Reconstruction stage: SfM with GNSS priors, alignment, CPU stereo + fusion, proxy, caching, failure.
+
+The test flight is ray-cast here (textured axis-aligned boxes on a textured ground plane), so the
+tests depend on nothing but numpy/OpenCV and the reconstruction package itself.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+import trimesh
+from omegaconf import OmegaConf
+
+from reconstruct.align import align_to_gnss, pose_errors
+from reconstruct.dense import View, consistent_depth, fuse, normals_from_depth, pair_depth, write_maps
+from reconstruct.errors import ReconstructionError
+from reconstruct.flight import Flight, simulate_gnss
+from reconstruct.pipeline import build_proxy, flight_content_key, reconstruct_flight
+from reconstruct.proxy import degraded_ground_truth, poisson_proxy
+from reconstruct.sfm import map_reconstruction, sfm_options
+from scene.base import Box, MeshPart, Scene
+from scene.camera import Intrinsics, cam_from_world, cam_from_world_rigid, look_at
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIG = ROOT / "conf" / "reconstruct" / "default.yaml"
+
+
+def reconstruct_cfg(**overrides):
+    """The default ``reconstruct`` config with dotted-key overrides."""
+    cfg = OmegaConf.load(CONFIG)
+    for key, value in overrides.items():
+        OmegaConf.update(cfg, key, value, merge=False)
+    return cfg
+
+# ----------------------------------------------------------------------------- a ray-cast box world
+
+GROUND_HALF_SIZE_M = 20.0
+
+
+def noise_texture(size: int, seed: int) -> np.ndarray:
+    """(size, size) float32 texture in [0, 1]: band-limited noise summed over octaves (tileable)."""
+    rng = np.random.default_rng(seed)
+    out = np.zeros((size, size), np.float32)
+    for octave, weight in ((4, 1.0), (8, 0.7), (16, 0.5), (32, 0.35), (64, 0.25), (128, 0.2)):
+        coarse = rng.random((octave, octave)).astype(np.float32)
+        tiled = np.tile(coarse, (3, 3))
+        big = cv2.resize(tiled, (3 * size, 3 * size), interpolation=cv2.INTER_CUBIC)
+        out += weight * big[size : 2 * size, size : 2 * size]
+    out -= out.min()
+    return out / out.max()
+
+
+def raycast_box_world(boxes, texture, texel_m, rot, t, intr: Intrinsics) -> np.ndarray:
+    """Render a grey image (H, W) uint8 of textured boxes on a textured ground plane z = 0.
+
+    Args:
+        boxes: list of (lo (3,), hi (3,)) axis-aligned boxes in metres.
+        texture: (S, S) float texture in [0, 1], tiled over every face.
+        texel_m: texture texel size in metres.
+        rot, t: COLMAP cam_from_world.
+        intr: the camera.
+    """
+    h, w = intr.height, intr.width
+    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    rays_cam = np.stack([(u - intr.cx) / intr.focal_px, (v - intr.cy) / intr.focal_px, np.ones_like(u)], -1)
+    dirs = rays_cam.reshape(-1, 3) @ rot  # world directions = R^T d
+    origin = -rot.T @ t
+    best_t = np.full(len(dirs), np.inf)
+    coords = np.zeros((len(dirs), 2))
+    shade = np.zeros(len(dirs))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_ground = -origin[2] / dirs[:, 2]
+    hit = (t_ground > 0) & np.isfinite(t_ground)
+    p = origin + t_ground[:, None] * dirs
+    hit &= np.all(np.abs(p[:, :2]) <= GROUND_HALF_SIZE_M, axis=1)
+    best_t[hit] = t_ground[hit]
+    coords[hit] = p[hit][:, :2]
+    shade[hit] = 0.8
+    face_shade = np.array([0.65, 0.9, 0.75, 0.55, 0.6, 1.0])  # -x, +x, -y, +y, -z, +z
+    for k, (lo, hi) in enumerate(boxes):
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1 = (lo - origin) / dirs
+            t2 = (hi - origin) / dirs
+        tmin = np.nanmax(np.minimum(t1, t2), axis=1)
+        tmax = np.nanmin(np.maximum(t1, t2), axis=1)
+        axis = np.nanargmax(np.minimum(t1, t2), axis=1)
+        ok = (tmax >= tmin) & (tmin > 0) & (tmin < best_t)
+        if not ok.any():
+            continue
+        p = origin + tmin[ok, None] * dirs[ok]
+        ax = axis[ok]
+        side = dirs[ok, ax] > 0  # entering through the low face when moving in +axis
+        uv_axes = np.array([[1, 2], [0, 2], [0, 1]])[ax]
+        offset = 3.7 * k + 1.3 * ax
+        coords[ok] = np.take_along_axis(p, uv_axes, axis=1) + offset[:, None]
+        shade[ok] = face_shade[2 * ax + (~side).astype(int)]
+        best_t[ok] = tmin[ok]
+    size = texture.shape[0]
+    tex_uv = (coords / texel_m) % size
+    sampled = cv2.remap(
+        texture, tex_uv[:, 0].reshape(h, w).astype(np.float32), tex_uv[:, 1].reshape(h, w).astype(np.float32),
+        cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP,
+    ).reshape(-1)
+    value = np.where(np.isfinite(best_t), (0.15 + 0.85 * sampled) * shade, 0.55)
+    return np.clip(value * 255.0, 0, 255).astype(np.uint8).reshape(h, w)
+
+
+def ring_viewpoints(n_ring: int, radius: float, height: float, target, n_nadir_side: int, nadir_height: float):
+    """Viewpoints (V, 5): a ring aimed at ``target`` plus a nadir grid (metres, degrees)."""
+    rows = []
+    for a in np.linspace(0.0, 2 * np.pi, n_ring, endpoint=False):
+        rows.append(look_at([radius * np.cos(a), radius * np.sin(a), height], target).as_array())
+    for x in np.linspace(-4.0, 4.0, n_nadir_side):
+        for y in np.linspace(-4.0, 4.0, n_nadir_side):
+            rows.append([x, y, nadir_height, 90.0, -90.0])
+    return np.array(rows)
+
+
+BOXES = [((-3.0, -2.0, 0.0), (3.0, 2.0, 3.0)), ((-1.0, -1.0, 3.0), (1.5, 1.0, 4.5))]
+
+
+def write_box_world_flight(image_dir: Path, viewpoints: np.ndarray, intr: Intrinsics, seed: int = 0) -> Path:
+    """Ray-cast the box world from ``viewpoints`` into ``image_dir`` in the renderer's format."""
+    image_dir.mkdir(parents=True, exist_ok=True)
+    texture = noise_texture(1024, seed)
+    images = []
+    for i, vp in enumerate(viewpoints):
+        rot, t = cam_from_world(vp)
+        gray = raycast_box_world(BOXES, texture, 0.02, rot, t, intr)
+        name = f"{i:06d}.png"
+        cv2.imwrite(str(image_dir / name), cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR))
+        images.append({"name": name, "viewpoint": vp.tolist(), "kind": "test",
+                       "cam_from_world": {"rotation": rot.tolist(), "translation": t.tolist()}})
+    record = {"intrinsics": intr.as_dict(), "images": images}
+    (image_dir / "cameras.json").write_text(json.dumps(record, indent=1))
+    return image_dir
+
+
+def box_world_mesh() -> trimesh.Trimesh:
+    """The ray-cast world as one mesh (boxes + a thin ground slab whose top is z = 0)."""
+    parts = [trimesh.creation.box(bounds=np.array(b)) for b in BOXES]
+    h = GROUND_HALF_SIZE_M
+    parts.append(trimesh.creation.box(bounds=np.array([[-h, -h, -1.0], [h, h, 0.0]])))
+    return trimesh.util.concatenate(parts)
+
+
+def plane_views(intr: Intrinsics, positions, height: float) -> list[View]:
+    """Nadir views (yaw 90) at ``positions`` (x, y) and ``height`` metres as OpenCV-convention views."""
+    K = intr.K.copy()
+    K[0, 2] -= 0.5
+    K[1, 2] -= 0.5
+    views = []
+    for i, (x, y) in enumerate(positions):
+        rot, t = cam_from_world(np.array([x, y, height, 90.0, -90.0]))
+        views.append(View(f"{i:06d}.png", K, rot, t, intr.width, intr.height))
+    return views
+
+
+def plane_depth(view: View, plane_z: float) -> np.ndarray:
+    """Exact depth (H, W) along the optical axis of the plane z = plane_z seen by ``view``."""
+    u, v = np.meshgrid(np.arange(view.width, dtype=float), np.arange(view.height, dtype=float))
+    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(view.K).T
+    rays_world = rays @ view.rotation
+    return ((plane_z - view.center[2]) / rays_world[..., 2]).astype(np.float32)
+
+
+# ----------------------------------------------------------------------------- tests
+
+
+def test_png_writing_survives_every_pipeline_import(tmp_path):
+    """pycolmap 4.1/4.2 CPU wheels abort PNG writing after import; 4.0.4 must not (fresh process)."""
+    script = textwrap.dedent(
+        f"""
+        import numpy as np, pycolmap, open3d, mujoco, trimesh, cv2, scipy, tqdm
+        from PIL import Image
+        import reconstruct.pipeline, reconstruct.dense, reconstruct.proxy, reconstruct.sfm
+        image = (np.arange(48 * 64 * 3) % 251).astype(np.uint8).reshape(48, 64, 3)
+        Image.fromarray(image).save("{tmp_path}/pil.png")
+        cv2.imwrite("{tmp_path}/cv.png", image)
+        a = np.asarray(Image.open("{tmp_path}/cv.png"))[..., ::-1]  # OpenCV writes BGR
+        b = cv2.imread("{tmp_path}/pil.png")[..., ::-1]
+        print(int(np.abs(a.astype(int) - image).max()), int(np.abs(b.astype(int) - image).max()))
+        """
+    )
+    done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == ["0", "0"]
+
+
+def test_consistent_depth_keeps_agreeing_partners():
+    nan = np.nan
+    depths = np.array([[[10.0, 10.0, 5.0, nan]], [[10.05, 12.0, nan, nan]], [[9.95, 14.0, nan, nan]]])
+    out = consistent_depth(depths, min_consistent=2, rel_tol=0.01)
+    assert out[0, 0] == pytest.approx(10.0, abs=1e-5)  # three agree: their mean
+    assert np.isnan(out[0, 1])  # 10, 12, 14: only the median agrees with itself
+    assert np.isnan(out[0, 2])  # one partner only, two needed
+    assert np.isnan(out[0, 3])
+    single = consistent_depth(depths[:1], min_consistent=2, rel_tol=0.01)  # one partner: it suffices
+    assert single[0, 2] == pytest.approx(5.0)
+
+
+def test_normals_from_depth_of_a_tilted_plane():
+    intr = Intrinsics(160, 120, 60.0)
+    K = intr.K
+    normal_cam = np.array([0.3, -0.2, -1.0]) / np.linalg.norm([0.3, -0.2, -1.0])  # facing the camera
+    offset = 8.0  # plane: n . X = -offset
+    u, v = np.meshgrid(np.arange(160.0), np.arange(120.0))
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+    depth = (-offset / (rays @ normal_cam)).astype(np.float32)
+    normals = normals_from_depth(depth, K, window=5)
+    defined = np.any(normals != 0, axis=-1)
+    assert defined.mean() > 0.9
+    angle = np.degrees(np.arccos(np.clip(normals[defined] @ normal_cam, -1, 1)))
+    assert angle.max() < 0.05
+
+
+def test_sgbm_pair_depth_of_a_textured_plane():
+    """Rectification + SGBM + back-projection recover a plane's depth from a sideways pair."""
+    intr = Intrinsics(320, 240, 60.0)
+    ref, src = plane_views(intr, [(0.0, 0.0), (3.0, 1.0)], height=12.0)
+    texture = noise_texture(1024, seed=3)
+    images = [raycast_box_world([], texture, 0.02, view.rotation, view.translation, intr) for view in (ref, src)]
+    points = np.random.default_rng(0).uniform([-3, -2, 0], [3, 2, 0], (50, 3))
+    cfg = reconstruct_cfg().dense
+    depth = pair_depth(ref, src, images[0], images[1], points, cfg)
+    truth = plane_depth(ref, 0.0)
+    valid = np.isfinite(depth)
+    # The partner sees about 3/4 of the reference at this baseline.
+    assert valid.mean() > 0.6
+    rel = np.abs(depth[valid] - truth[valid]) / truth[valid]
+    assert np.median(rel) < 0.002
+    assert np.percentile(rel, 95) < 0.01
+
+
+def test_fusion_of_plane_depth_maps_lies_on_the_plane(tmp_path):
+    """Exact depth maps of z = 0.5 from a 3x3 nadir grid, normals from depth, COLMAP fusion."""
+    intr = Intrinsics(160, 120, 60.0)
+    plane_z = 0.5
+    positions = [(x, y) for x in (-1.5, 0.0, 1.5) for y in (-1.0, 0.0, 1.0)]
+    views = plane_views(intr, positions, height=10.0)
+    workspace = tmp_path / "ws"
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(intr.to_colmap())
+    texture = noise_texture(256, seed=1)
+    (workspace / "images").mkdir(parents=True)
+    # Sparse points on the plane seen by every view: fusion picks overlapping views by shared points.
+    grid = np.stack(np.meshgrid(np.linspace(-1.0, 1.0, 5), np.linspace(-1.0, 1.0, 5)), -1).reshape(-1, 2)
+    sparse_points = np.column_stack([grid, np.full(len(grid), plane_z)])
+    for i, view in enumerate(views):
+        cam = sparse_points @ view.rotation.T + view.translation
+        keypoints = cam[:, :2] / cam[:, 2:] * intr.focal_px + [intr.cx, intr.cy]
+        image = pycolmap.Image(name=view.name, keypoints=keypoints, camera_id=1, image_id=i + 1)
+        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(view.rotation), view.translation))
+    for k, xyz in enumerate(sparse_points):
+        track = pycolmap.Track()
+        for i in range(len(views)):
+            track.add_element(i + 1, k)
+        rec.add_point3D(xyz, track)
+    for i, view in enumerate(views):
+        gray = raycast_box_world([], texture, 0.02, view.rotation, view.translation, intr)
+        cv2.imwrite(str(workspace / "images" / view.name), gray)
+        depth = plane_depth(view, plane_z)
+        write_maps(workspace, view.name, depth, normals_from_depth(depth, view.K, window=5))
+    (workspace / "sparse").mkdir()
+    rec.write(workspace / "sparse")
+    n_points = fuse(workspace, tmp_path / "fused.ply", reconstruct_cfg().dense, [v.name for v in views])
+    import open3d as o3d
+
+    cloud = o3d.io.read_point_cloud(str(tmp_path / "fused.ply"))
+    points, normals = np.asarray(cloud.points), np.asarray(cloud.normals)
+    assert n_points == len(points) > 5000
+    assert np.abs(points[:, 2] - plane_z).max() < 1e-3
+    assert np.abs(normals[:, 2]).min() > 0.999
+    # The cloud spans the union of the footprints (about 5.8 m x 4.6 m at 9.5 m with a 60 deg lens).
+    extent = points.max(0) - points.min(0)
+    assert extent[0] > 6.0 and extent[1] > 4.5
+
+
+def test_mapping_and_alignment_on_a_synthetic_dataset(tmp_path):
+    """pycolmap.synthesize_dataset -> mapper -> similarity to noisy GNSS -> pose errors."""
+    options = pycolmap.SyntheticDatasetOptions()
+    options.num_rigs = 1
+    options.num_cameras_per_rig = 1
+    options.num_frames_per_rig = 30
+    options.num_points3D = 300
+    options.camera_model_id = pycolmap.CameraModelId.PINHOLE
+    options.camera_params = [1000.0, 1000.0, 512.0, 384.0]
+    options.sensor_from_rig_translation_stddev = 0.0
+    options.sensor_from_rig_rotation_stddev = 0.0
+    database_path = tmp_path / "database.db"
+    pycolmap.set_random_seed(0)
+    with pycolmap.Database.open(database_path) as db:
+        truth = pycolmap.synthesize_dataset(options, db)
+    names, rotations, translations = [], [], []
+    for image_id in sorted(truth.reg_image_ids()):
+        image = truth.image(image_id)
+        names.append(image.name)
+        rotations.append(image.cam_from_world().rotation.matrix())
+        translations.append(np.asarray(image.cam_from_world().translation))
+    flight = Flight(tmp_path, Intrinsics(1024, 768, 60.0), tuple(names), np.array(rotations),
+                    np.array(translations), ("test",) * len(names))
+    sigma = 0.005 * float(np.ptp(flight.positions, axis=0).max())  # GNSS noise: 0.5 % of the extent
+    gnss = simulate_gnss(flight.positions, sigma, seed=1)
+    gnss_error_median = float(np.median(np.linalg.norm(gnss - flight.positions, axis=1)))
+    cfg = reconstruct_cfg(**{"sfm.mapping.use_prior_position": False})
+    for method in ("incremental", "global"):
+        cfg.sfm.mapping.method = method
+        rec, _ = map_reconstruction(database_path, tmp_path, sfm_options(cfg.sfm, seed=0))
+        align_to_gnss(rec, flight.names, gnss, sigma, cfg.align, seed=0)
+        errors = pose_errors(rec, flight)
+        assert errors["n_registered"] == 30, method
+        # 30 noisy positions fix the 7 similarity parameters: the aligned cameras are much closer to
+        # the truth than the GNSS positions themselves (the relative poses are exact).
+        assert errors["position_error_median_m"] < 0.5 * gnss_error_median, method
+        assert errors["rotation_error_max_deg"] < 0.5, method
+
+
+@pytest.fixture(scope="module")
+def box_flight(tmp_path_factory):
+    """33 ray-cast 320x240 views (a ring at 11 m, a 3x3 nadir grid) of two stacked textured boxes."""
+    intr = Intrinsics(320, 240, 60.0)
+    viewpoints = ring_viewpoints(24, 11.0, 7.0, [0.0, 0.0, 1.5], 3, 14.0)
+    return write_box_world_flight(tmp_path_factory.mktemp("flight"), viewpoints, intr, seed=0)
+
+
+@pytest.fixture(scope="module")
+def box_reconstruction(box_flight, tmp_path_factory):
+    out_dir = tmp_path_factory.mktemp("recon")
+    return out_dir, reconstruct_flight(box_flight, out_dir, reconstruct_cfg(), seed=0)
+
+
+def test_reconstruct_flight_registers_aligns_and_densifies(box_reconstruction):
+    out_dir, record = box_reconstruction
+    assert record["status"] == "ok" and record["cached"] is False
+    assert record["n_images"] == 33 and record["n_registered"] == 33
+    assert record["registered_fraction"] == 1.0
+    # 0.05 m GNSS noise; 320x240 images with ~450 SIFT features each.
+    assert record["position_error_median_m"] < 0.05
+    assert record["position_error_p90_m"] < 0.08
+    assert record["rotation_error_median_deg"] < 0.3
+    assert record["align_time_s"] == pytest.approx(
+        record["extraction_time_s"] + record["matching_time_s"] + record["mapping_time_s"]
+    )
+    for name in ("database.db", "sparse/images.bin", "dense.ply", "recon.json"):
+        assert (out_dir / name).exists(), name
+    assert Path(record["colmap_log"]).stat().st_size > 1000
+    assert "Registering image" in Path(record["colmap_log"]).read_text()
+    import open3d as o3d
+
+    points = np.asarray(o3d.io.read_point_cloud(record["dense_ply"]).points)
+    assert len(points) == record["n_dense_points"] > 5000
+    distance = trimesh.proximity.closest_point(box_world_mesh(), points)[1]
+    # GSD about 4 cm/px at 11 m: 90 % of the fused points within 6 cm of the true surface.
+    assert np.percentile(distance, 90) < 0.06
+
+
+def test_reconstruct_flight_reuses_unchanged_outputs(box_flight, box_reconstruction):
+    out_dir, record = box_reconstruction
+    again = reconstruct_flight(box_flight, out_dir, reconstruct_cfg(), seed=0)
+    assert again["cached"] is True
+    assert again["content_key"] == record["content_key"]
+    assert again["position_error_median_m"] == record["position_error_median_m"]
+    from reconstruct.flight import read_flight
+
+    flight = read_flight(box_flight)
+    key = flight_content_key(box_flight, flight, reconstruct_cfg(), 0)
+    assert key == record["content_key"]
+    assert flight_content_key(box_flight, flight, reconstruct_cfg(**{"gnss.sigma_m": 2.0}), 0) != key
+    assert flight_content_key(box_flight, flight, reconstruct_cfg(), 1) != key
+    # The proxy settings do not touch the flight's reconstruction.
+    assert flight_content_key(box_flight, flight, reconstruct_cfg(**{"proxy.face_budget": 10}), 0) == key
+
+
+def test_build_proxy_covers_the_boxes_and_refuses_partial_models(box_flight, box_reconstruction, tmp_path):
+    out_dir, _ = box_reconstruction
+    cfg = reconstruct_cfg(**{"proxy.face_budget": 20000})
+    mesh, record = build_proxy(box_flight, out_dir, cfg, seed=0)
+    assert record["cached"] is True and record["proxy_cached"] is False
+    assert len(mesh.faces) <= 20000
+    again, record2 = build_proxy(box_flight, out_dir, cfg, seed=0)
+    assert record2["proxy_cached"] is True and len(again.faces) == len(mesh.faces)
+    # The big box's walls and roof: most of the true surface lies within 15 cm of the proxy.
+    lo, hi = np.array(BOXES[0][0]), np.array(BOXES[0][1])
+    rng = np.random.default_rng(0)
+    samples = []
+    for axis, value in ((0, lo[0]), (0, hi[0]), (1, lo[1]), (1, hi[1]), (2, hi[2])):
+        s = rng.uniform(lo, hi, (500, 3))
+        s[:, axis] = value
+        samples.append(s)
+    samples = np.concatenate(samples)
+    samples = samples[~Box(BOXES[1][0], BOXES[1][1]).expanded(0.01, 0.01, 0.01).contains(samples)]
+    distance = trimesh.proximity.closest_point(mesh, samples)[1]
+    assert np.mean(distance < 0.15) > 0.7
+
+    strict = reconstruct_cfg(**{"proxy.min_registered_fraction": 1.01})
+    with pytest.raises(ReconstructionError, match="partial model") as info:
+        build_proxy(box_flight, out_dir, strict, seed=0)
+    assert info.value.record["status"] == "failed"
+    assert info.value.record["registered_fraction"] == 1.0
+
+
+def _flight_of_images(image_dir: Path, images, intr: Intrinsics) -> Path:
+    image_dir.mkdir(parents=True, exist_ok=True)
+    entries = []
+    for i, image in enumerate(images):
+        name = f"{i:06d}.png"
+        cv2.imwrite(str(image_dir / name), image)
+        rot, t = cam_from_world(np.array([2.0 * i, 0.0, 10.0, 90.0, -90.0]))
+        entries.append({"name": name, "viewpoint": [2.0 * i, 0.0, 10.0, 90.0, -90.0], "kind": "test",
+                        "cam_from_world": {"rotation": rot.tolist(), "translation": t.tolist()}})
+    (image_dir / "cameras.json").write_text(json.dumps({"intrinsics": intr.as_dict(), "images": entries}))
+    return image_dir
+
+
+def test_failures_carry_a_record(tmp_path):
+    intr = Intrinsics(128, 96, 60.0)
+    cfg = reconstruct_cfg()
+    flat = [np.full((96, 128), 128, np.uint8) for _ in range(2)]
+    with pytest.raises(ReconstructionError, match="at least 3") as info:
+        reconstruct_flight(_flight_of_images(tmp_path / "two", flat, intr), tmp_path / "out_two", cfg, 0)
+    assert info.value.record["status"] == "failed" and info.value.record["stage"] == "input"
+    assert info.value.record["n_images"] == 2
+
+    flat = [np.full((96, 128), 128, np.uint8) for _ in range(4)]
+    with pytest.raises(ReconstructionError, match="SIFT features") as info:
+        reconstruct_flight(_flight_of_images(tmp_path / "flat", flat, intr), tmp_path / "out_flat", cfg, 0)
+    assert info.value.record["stage"] == "extraction"
+    assert info.value.record["registered_fraction"] == 0.0
+    stored = json.loads((tmp_path / "out_flat" / "recon.json").read_text())
+    assert stored["status"] == "failed"
+
+    # Unrelated noise images: features, but nothing that registers.
+    rng = np.random.default_rng(0)
+    noise = [cv2.GaussianBlur(rng.integers(0, 255, (96, 128), dtype=np.uint8), (3, 3), 0) for _ in range(4)]
+    with pytest.raises(ReconstructionError) as info:
+        reconstruct_flight(_flight_of_images(tmp_path / "noise", noise, intr), tmp_path / "out_noise", cfg, 0)
+    assert info.value.record["stage"] == "mapping"
+    assert info.value.record["registered_fraction"] < cfg.min_registered_fraction
+
+
+def test_poisson_proxy_of_a_sampled_box(tmp_path):
+    """A clean oriented sample of a box on the ground meshes back within a few centimetres."""
+    import open3d as o3d
+
+    box = trimesh.creation.box(bounds=np.array([[-2.0, -1.5, 0.0], [2.0, 1.5, 2.0]]))
+    ground = trimesh.creation.box(bounds=np.array([[-5.0, -5.0, -0.5], [5.0, 5.0, 0.0]]))
+    world = trimesh.util.concatenate([box, ground])
+    points, faces = trimesh.sample.sample_surface_even(world, 30000, seed=0)
+    # Only what a flight sees: the ground's top outside the box's footprint, the box's walls and roof.
+    under_box = (np.abs(points[:, 0]) < 2.0) & (np.abs(points[:, 1]) < 1.5) & (points[:, 2] < 1e-6)
+    keep = (points[:, 2] >= -1e-6) & ~under_box
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[keep]))
+    cloud.normals = o3d.utility.Vector3dVector(world.face_normals[faces[keep]])
+    o3d.io.write_point_cloud(str(tmp_path / "cloud.ply"), cloud)
+    cfg = reconstruct_cfg(**{"proxy.face_budget": 5000, "proxy.voxel_size_m": 0.03, "proxy.poisson_depth": 8})
+    mesh = poisson_proxy(tmp_path / "cloud.ply", Box((-4.5, -4.5, -1.0), (4.5, 4.5, 5.0)), cfg)
+    assert len(mesh.faces) <= 5000
+    on_box = trimesh.sample.sample_surface_even(box, 3000, seed=1)[0]
+    on_box = on_box[on_box[:, 2] > 0.05]
+    assert np.percentile(trimesh.proximity.closest_point(mesh, on_box)[1], 95) < 0.06
+    assert np.percentile(trimesh.proximity.closest_point(world, mesh.vertices)[1], 95) < 0.06
+
+
+def test_degraded_ground_truth_is_cropped_decimated_and_noised():
+    box = trimesh.creation.box(bounds=np.array([[-2.0, -3.0, 0.0], [2.0, 3.0, 3.0]]))
+    ground = np.array([[-50.0, -50.0, 0.0], [50.0, -50.0, 0.0], [50.0, 50.0, 0.0], [-50.0, 50.0, 0.0]])
+    scene = Scene(
+        "boxes",
+        [MeshPart("ground", ground, np.array([[0, 1, 2], [0, 2, 3]])), MeshPart("box", box.vertices, box.faces)],
+        {},
+        structure_bounds=Box((-2.0, -3.0, 0.0), (2.0, 3.0, 3.0)),
+        evaluation_region=Box((-7.0, -8.0, -0.5), (7.0, 8.0, 4.0)),
+    )
+    cfg = reconstruct_cfg(**{"proxy.face_budget": 2000, "proxy.degraded.noise_sigma_m": 0.05})
+    mesh = degraded_ground_truth(scene, cfg, seed=0)
+    assert 1000 < len(mesh.faces) <= 2000
+    assert np.all(mesh.bounds[0] > [-7.5, -8.5, -0.5]) and np.all(mesh.bounds[1] < [7.5, 8.5, 3.5])
+    distance = trimesh.proximity.closest_point(scene.ground_truth_mesh, mesh.vertices)[1]
+    # |N(0, 0.05)| has median 0.0337 m.
+    assert np.median(distance) == pytest.approx(0.0337, rel=0.2)
+    again = degraded_ground_truth(scene, cfg, seed=0)
+    assert np.array_equal(again.vertices, mesh.vertices)
+    exact = degraded_ground_truth(scene, reconstruct_cfg(**{"proxy.degraded.noise_sigma_m": 0.0}), seed=0)
+    assert trimesh.proximity.closest_point(scene.ground_truth_mesh, exact.vertices)[1].max() < 1e-6
+
+
+def test_written_normal_map_is_planar_like_colmap(tmp_path):
+    """COLMAP's .bin maps are stored channel by channel (header ``W&H&C&``)."""
+    normals = np.zeros((2, 3, 3), np.float32)
+    normals[..., 0], normals[..., 2] = 0.6, -0.8
+    write_maps(tmp_path, "a.png", np.full((2, 3), 5.0, np.float32), normals)
+    raw = (tmp_path / "stereo" / "normal_maps" / "a.png.geometric.bin").read_bytes()
+    header = b"3&2&3&"
+    assert raw.startswith(header)
+    data = np.frombuffer(raw[len(header) :], np.float32)
+    assert np.allclose(data, np.repeat([0.6, 0.0, -0.8], 6))
