@@ -2,7 +2,7 @@
 
     python -m evaluate recon/dense.ply --scene tomb [--out DIR]
     python -m evaluate cloud.ply --gt-mesh gt_region.ply --region x0,y0,z0,x1,y1,z1
-    python -m evaluate cloud.ply --scene church --set accuracy_percentiles=[50,80,90,95] --set visualise.vmax_m=0.1
+    python -m evaluate cloud.ply --scene church --config full --set visualise.vmax_m=0.1
 
 Prints the metrics record (JSON) and writes ``metrics.json``, ``gt_region.ply`` and the error
 pictures into ``--out`` (default: ``<file>_eval`` beside the file). Exit status 2 on bad input.
@@ -37,7 +37,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--config", default="default", help="evaluation config name in conf/evaluate/ (default: default)"
     )
     parser.add_argument(
-        "--set", action="append", default=[], metavar="KEY=VALUE", help="override an evaluate setting (repeatable)"
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override an evaluate setting (repeatable)",
     )
     parser.add_argument("--no-vis", action="store_true", help="skip the coloured PLYs and PNG views")
     return parser

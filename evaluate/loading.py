@@ -49,7 +49,8 @@ def load_reconstruction(
     suffix = path.suffix.lower()
     if suffix not in SUPPORTED_SUFFIXES:
         raise ReconstructionFileError(
-            f"{path}: unsupported file type {suffix or '(no suffix)'!r}; expected one of {', '.join(SUPPORTED_SUFFIXES)}"
+            f"{path}: unsupported file type {suffix or '(no suffix)'!r}; "
+            f"expected one of {', '.join(SUPPORTED_SUFFIXES)}"
         )
     if path.stat().st_size == 0:
         raise ReconstructionFileError(f"{path}: empty file, not a point cloud or mesh")
@@ -66,7 +67,9 @@ def _load_numpy(path: Path) -> np.ndarray:
     except (ValueError, OSError) as exc:
         raise ReconstructionFileError(f"{path}: not a NumPy array file ({exc})") from exc
     if array.ndim != 2 or array.shape[1] < 3 or not np.issubdtype(array.dtype, np.number):
-        raise ReconstructionFileError(f"{path}: expected a numeric (N, 3) array, got {array.dtype} {array.shape}")
+        raise ReconstructionFileError(
+            f"{path}: expected a numeric (N, 3) array, got {array.dtype} {array.shape}"
+        )
     return np.asarray(array[:, :3], dtype=np.float64)
 
 
@@ -92,9 +95,13 @@ def _load_trimesh(path: Path, mesh_input: str, density: float, seed: int) -> tup
     try:
         loaded = trimesh.load(path, process=False)
     except Exception as exc:  # trimesh raises many types for malformed files
-        raise ReconstructionFileError(f"{path}: not a point cloud or mesh ({type(exc).__name__}: {exc})") from exc
+        raise ReconstructionFileError(
+            f"{path}: not a point cloud or mesh ({type(exc).__name__}: {exc})"
+        ) from exc
     geometries = list(loaded.geometry.values()) if isinstance(loaded, trimesh.Scene) else [loaded]
     if isinstance(loaded, trimesh.Scene):
+        if not geometries and _ply_vertex_count(path) == 0:
+            return np.zeros((0, 3)), "point_cloud"
         if not geometries:
             raise ReconstructionFileError(f"{path}: holds no geometry; not a point cloud or mesh")
         geometries = [g.copy().apply_transform(t) for g, t in _scene_instances(loaded)]
@@ -116,6 +123,21 @@ def _load_trimesh(path: Path, mesh_input: str, density: float, seed: int) -> tup
         parts.extend(np.asarray(m.vertices, dtype=np.float64).reshape(-1, 3) for m in meshes)
         kind = "mesh_vertices" if with_faces else kind
     return (np.concatenate(parts) if parts else np.zeros((0, 3))), kind
+
+
+def _ply_vertex_count(path: Path) -> int | None:
+    """The vertex count a PLY header declares, or None when ``path`` has no valid PLY header."""
+    with path.open("rb") as f:
+        if f.readline().strip() != b"ply":
+            return None
+        count = None
+        for _ in range(200):
+            words = f.readline().split()
+            if words[:2] == [b"element", b"vertex"] and len(words) == 3 and words[2].isdigit():
+                count = int(words[2])
+            if words == [b"end_header"]:
+                return count
+    return None
 
 
 def _scene_instances(scene: trimesh.Scene):

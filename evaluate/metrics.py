@@ -30,7 +30,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from evaluate.geometry import SurfaceDistance, clip_mesh_to_box, sample_surface
+from evaluate.geometry import SurfaceDistance, clip_mesh_to_box, sample_surface, spatial_order
 from evaluate.loading import load_reconstruction
 from evaluate.settings import EvaluationSettings, percentile_key, threshold_key
 from scene.base import Box
@@ -63,10 +63,10 @@ class ScoreDetails:
 
     Attributes:
         record: the flat metrics record (see the module docstring).
-        points_in_region: (M, 3) scored reconstruction points (m).
+        points_in_region: (M, 3) scored reconstruction points (m), in Z-order (not file order).
         accuracy_distances: (M,) their distance to the in-region ground-truth surface (m).
         gt_region_mesh: the ground truth cut to the region (the surface scored against).
-        gt_samples: (S, 3) ground-truth surface samples (m).
+        gt_samples: (S, 3) ground-truth surface samples (m), in Z-order.
         completeness_distances: (S,) distance from each sample to the nearest scored point (m);
             ``inf`` beyond ``distance_cap_m``.
     """
@@ -92,9 +92,9 @@ def score_points(points, gt_mesh: trimesh.Trimesh, region: Box, cfg=None) -> dic
         Keys ``n_points``, ``n_points_nonfinite``, ``n_points_in_region``, ``n_points_outside_region``,
         ``fraction_outside_region``, ``gt_area_m2``, ``n_gt_samples``, ``acc{q}_m``, ``acc_mean_m``,
         ``comp_{t}``, ``prec_{t}``, ``fscore_{t}``, ``chamfer_m``, ``chamfer_acc_m``,
-        ``chamfer_comp_m``, ``gt_beyond_cap_fraction``, ... (metres, percentages 0-100). With no
-        point in the region the distance metrics are None (with an ``EmptyReconstructionWarning``),
-        completeness and F-score are 0.
+        ``chamfer_comp_m``, ``gt_beyond_cap_fraction``, ``eval_*time_s`` (metres, percentages
+        0-100, seconds). With no point in the region the distance metrics are None (with an
+        ``EmptyReconstructionWarning``), completeness and F-score are 0.
 
     Raises:
         ValueError: malformed points, or no ground-truth surface inside the region.
@@ -158,6 +158,7 @@ def score_details(
     n_points, n_nonfinite = len(points), int((~finite).sum())
     in_region = finite & region.contains(points)
     scored = points[in_region]
+    scored = scored[spatial_order(scored)]  # locality: 3-5x faster queries, same result
 
     region_mesh = clip_mesh_to_box(gt_mesh, region) if gt_region_mesh is None else gt_region_mesh
     if len(region_mesh.faces) == 0:
@@ -165,6 +166,9 @@ def score_details(
     samples, _ = sample_surface(
         region_mesh, settings.gt_sample_density_per_m2, settings.gt_sample_seed, settings.max_gt_samples
     )
+    # Barycentric rounding may put a sample on a cut face one ulp outside the box.
+    samples = np.clip(samples, region.lo_array, region.hi_array)
+    samples = samples[spatial_order(samples)]
     if len(samples) == 0:
         raise ValueError(
             f"the ground truth inside {region.as_dict()} ({region_mesh.area:.3g} m^2) gets no sample at "
@@ -188,10 +192,15 @@ def score_details(
     }
     cap = np.inf if settings.distance_cap_m is None else settings.distance_cap_m
 
+    stage_start = time.perf_counter()
+    record["eval_prepare_time_s"] = stage_start - start
     if n_scored:
         accuracy = SurfaceDistance(region_mesh, origin=region.center)(scored, settings.chunk_points, progress)
+        record["eval_accuracy_time_s"] = time.perf_counter() - stage_start
+        stage_start = time.perf_counter()
         tree = cKDTree(scored, balanced_tree=False, compact_nodes=False)
         completeness, _ = tree.query(samples, k=1, distance_upper_bound=cap, workers=-1)
+        record["eval_completeness_time_s"] = time.perf_counter() - stage_start
     else:
         message = (
             f"no reconstructed point inside the evaluation region ({n_points} points, {n_nonfinite} "
@@ -201,6 +210,7 @@ def score_details(
         log.warning(message)
         accuracy = np.zeros(0)
         completeness = np.full(len(samples), np.inf)
+        record["eval_accuracy_time_s"] = record["eval_completeness_time_s"] = None
 
     record.update(_accuracy_metrics(accuracy, settings.accuracy_percentiles))
     record.update(_threshold_metrics(accuracy, completeness, settings.completeness_thresholds_m))
@@ -234,7 +244,12 @@ def _threshold_metrics(accuracy: np.ndarray, completeness: np.ndarray, threshold
 def _chamfer_metrics(accuracy: np.ndarray, completeness: np.ndarray, cap: float) -> dict:
     beyond = float(np.count_nonzero(~(completeness < cap))) / len(completeness)
     if len(accuracy) == 0:
-        return {"chamfer_m": None, "chamfer_acc_m": None, "chamfer_comp_m": None, "gt_beyond_cap_fraction": beyond}
+        return {
+            "chamfer_m": None,
+            "chamfer_acc_m": None,
+            "chamfer_comp_m": None,
+            "gt_beyond_cap_fraction": beyond,
+        }
     to_gt = float(np.minimum(accuracy, cap).mean())
     to_recon = float(np.minimum(completeness, cap).mean())
     return {

@@ -12,7 +12,17 @@ from scene.io import write_json_atomic
 
 METRICS_FILE = "metrics.json"
 # Libraries whose versions go into every record (the numbers depend on them).
-RECORDED_LIBRARIES = ("numpy", "scipy", "trimesh", "open3d", "pycolmap", "mujoco", "cma", "elkai", "opencv-python-headless")
+RECORDED_LIBRARIES = (
+    "numpy",
+    "scipy",
+    "trimesh",
+    "open3d",
+    "pycolmap",
+    "mujoco",
+    "cma",
+    "elkai",
+    "opencv-python-headless",
+)
 
 
 def library_versions() -> dict:
@@ -28,7 +38,7 @@ def library_versions() -> dict:
 
 
 def run_identity(cfg: Mapping | None) -> dict:
-    """``scene``, ``planner``, ``seed`` (and ``experiment``) from a composed run config (None where absent)."""
+    """``scene``, ``planner``, ``seed``, ``experiment`` from a composed run config (None where absent)."""
     cfg = cfg or {}
 
     def name(group: str):

@@ -58,9 +58,9 @@ def evaluate_reconstruction(reconstruction_path: str | Path | None, scene, cfg, 
     else:
         details = score_file_details(reconstruction_path, scene, settings, region_mesh, progress=True)
     record = details.record
-    record["gt_mesh_path"] = str(export_region_mesh(region_mesh, out_dir / GT_REGION_FILE).resolve()) if (
-        settings.export_gt_mesh
-    ) else None
+    record["gt_mesh_path"] = None
+    if settings.export_gt_mesh:
+        record["gt_mesh_path"] = str(export_region_mesh(region_mesh, out_dir / GT_REGION_FILE).resolve())
     record["eval_region"] = format_region(region)
     record["eval_dir"] = str(out_dir.resolve())
     if settings.visualise.enabled and len(details.points_in_region):
@@ -70,20 +70,43 @@ def evaluate_reconstruction(reconstruction_path: str | Path | None, scene, cfg, 
             details.accuracy_distances,
             details.gt_samples,
             details.completeness_distances,
-            region,
+            Box.from_points(region_mesh.bounds),
             settings.visualise,
             label=str(getattr(scene, "name", "")),
         )
     record["eval_total_time_s"] = time.perf_counter() - start
     log.info(
-        "evaluate: %d/%d points in region, %s", record["n_points_in_region"], record["n_points"], summary(record)
+        "evaluate: %d/%d points in region, %s",
+        record["n_points_in_region"],
+        record["n_points"],
+        summary(record),
     )
     return record
 
 
 def export_region_mesh(mesh: trimesh.Trimesh, path: str | Path) -> Path:
-    """Write the ground truth cut to the region as a binary PLY (float64 vertices), atomically."""
-    return write_atomic(path, lambda tmp: mesh.export(tmp, file_type="ply"))
+    """Write the ground truth cut to the region as a binary PLY with float64 vertices, atomically.
+
+    Double precision (trimesh writes float32) so that re-scoring from the file draws exactly the
+    same surface samples and distances.
+    """
+    vertices = np.ascontiguousarray(mesh.vertices, dtype="<f8")
+    faces = np.empty(len(mesh.faces), dtype=[("count", "u1"), ("index", "<i4", (3,))])
+    faces["count"] = 3
+    faces["index"] = mesh.faces
+    header = (
+        "ply\nformat binary_little_endian 1.0\ncomment ground truth cut to the evaluation region\n"
+        f"element vertex {len(vertices)}\nproperty double x\nproperty double y\nproperty double z\n"
+        f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+
+    def writer(tmp: Path) -> None:
+        with tmp.open("wb") as f:
+            f.write(header.encode("ascii"))
+            f.write(vertices.tobytes())
+            f.write(faces.tobytes())
+
+    return write_atomic(path, writer)
 
 
 def format_region(region: Box) -> str:

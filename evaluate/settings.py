@@ -55,7 +55,9 @@ class VisualisationSettings:
                 f"evaluate.visualise.oblique_pitch_deg must lie in [-90, 0), got {self.oblique_pitch_deg}"
             )
         if not 0 <= self.point_radius_px <= 5:
-            raise ValueError(f"evaluate.visualise.point_radius_px must lie in [0, 5], got {self.point_radius_px}")
+            raise ValueError(
+                f"evaluate.visualise.point_radius_px must lie in [0, 5], got {self.point_radius_px}"
+            )
         import matplotlib
 
         if self.colormap not in matplotlib.colormaps:
@@ -102,8 +104,10 @@ class EvaluationSettings:
             raise ValueError(f"evaluate.accuracy_percentiles must be in (0, 100], got {list(percentiles)}")
         if not thresholds or not all(math.isfinite(t) and t > 0.0 for t in thresholds):
             raise ValueError(f"evaluate.completeness_thresholds_m must be positive, got {list(thresholds)}")
-        for name, keys in (("accuracy_percentiles", map(percentile_key, percentiles)),
-                           ("completeness_thresholds_m", map(threshold_key, thresholds))):
+        for name, keys in (
+            ("accuracy_percentiles", map(percentile_key, percentiles)),
+            ("completeness_thresholds_m", map(threshold_key, thresholds)),
+        ):
             keys = list(keys)
             if len(set(keys)) != len(keys):
                 raise ValueError(f"evaluate.{name} has duplicates: {keys}")
@@ -143,7 +147,9 @@ class EvaluationSettings:
         vis_known = {f.name for f in fields(VisualisationSettings)}
         vis_unknown = sorted(set(vis) - vis_known)
         if vis_unknown:
-            raise ValueError(f"unknown evaluate.visualise setting(s) {vis_unknown}; known: {sorted(vis_known)}")
+            raise ValueError(
+                f"unknown evaluate.visualise setting(s) {vis_unknown}; known: {sorted(vis_known)}"
+            )
         return cls(**values, visualise=VisualisationSettings(**vis))
 
 

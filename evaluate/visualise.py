@@ -66,7 +66,9 @@ def overview_viewpoints(region: Box, intrinsics: Intrinsics, oblique_pitch_deg: 
     pitch = math.radians(oblique_pitch_deg)
     for azimuth in (45.0, 135.0, 225.0, 315.0):
         a = math.radians(azimuth)
-        offset = distance * np.array([math.cos(pitch) * math.cos(a), math.cos(pitch) * math.sin(a), -math.sin(pitch)])
+        offset = distance * np.array(
+            [math.cos(pitch) * math.cos(a), math.cos(pitch) * math.sin(a), -math.sin(pitch)]
+        )
         rows.append(look_at(center + offset, center).as_array())
     # Nadir with yaw 90: image right is +x and image up is +y, like a map.
     rows.append(np.array([*center[:2], center[2] + distance, 90.0, -90.0]))
@@ -80,28 +82,45 @@ def splat(
 
     Each point covers a (2r+1) x (2r+1) pixel square at its depth; pixels no point covers are white.
     """
+    width, height = intrinsics.width, intrinsics.height
     pixels, depth = project_points(points, np.asarray(viewpoint, float)[None], intrinsics)
     pixels, depth = pixels[0], depth[0]
-    front = depth > 1e-6
-    col = np.floor(pixels[front, 0]).astype(np.int64)
-    row = np.floor(pixels[front, 1]).astype(np.int64)
-    depth, colors = depth[front], np.asarray(colors)[front]
-    order = np.argsort(depth, kind="stable")
-    col, row, depth, colors = col[order], row[order], depth[order], colors[order]
-    width, height = intrinsics.width, intrinsics.height
-    offsets = [(dx, dy) for dy in range(-radius_px, radius_px + 1) for dx in range(-radius_px, radius_px + 1)]
-    # Point-major order keeps the nearest point first for every pixel it covers.
-    cols = (col[:, None] + np.array([o[0] for o in offsets])).ravel()
-    rows = (row[:, None] + np.array([o[1] for o in offsets])).ravel()
-    owner = np.repeat(np.arange(len(col)), len(offsets))
-    visible = (cols >= 0) & (cols < width) & (rows >= 0) & (rows < height)
-    flat = rows[visible] * width + cols[visible]
-    owner = owner[visible]
-    pixel, first = np.unique(flat, return_index=True)  # stable: the first occurrence is the nearest
-    image = np.empty((height * width, 3), dtype=np.uint8)
+    with np.errstate(invalid="ignore"):
+        col = np.floor(pixels[:, 0])
+        row = np.floor(pixels[:, 1])
+        visible = (depth > 1e-6) & (col >= 0) & (col < width) & (row >= 0) & (row < height)
+    index = np.flatnonzero(visible)
+    flat = row[index].astype(np.int64) * width + col[index].astype(np.int64)
+    # One z-buffer pass at one pixel per point: per pixel, the nearest point.
+    order = np.lexsort((depth[index], flat))
+    flat_sorted = flat[order]
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = flat_sorted[1:] != flat_sorted[:-1]
+    zbuffer = np.full(height * width, np.inf)
+    owner = np.full(height * width, -1, dtype=np.int64)
+    zbuffer[flat_sorted[first]] = depth[index[order[first]]]
+    owner[flat_sorted[first]] = index[order[first]]
+    zbuffer, owner = zbuffer.reshape(height, width), owner.reshape(height, width)
+    # Grow every point to its square: a pixel takes the nearest point among its neighbours.
+    best_depth, best_owner = zbuffer.copy(), owner.copy()
+    for dy in range(-radius_px, radius_px + 1):
+        for dx in range(-radius_px, radius_px + 1):
+            if dx == 0 and dy == 0:
+                continue
+            shifted_depth = np.full_like(zbuffer, np.inf)
+            shifted_owner = np.full_like(owner, -1)
+            target = (slice(max(dy, 0), height + min(dy, 0)), slice(max(dx, 0), width + min(dx, 0)))
+            source = (slice(max(-dy, 0), height + min(-dy, 0)), slice(max(-dx, 0), width + min(-dx, 0)))
+            shifted_depth[target] = zbuffer[source]
+            shifted_owner[target] = owner[source]
+            nearer = shifted_depth < best_depth
+            best_depth[nearer] = shifted_depth[nearer]
+            best_owner[nearer] = shifted_owner[nearer]
+    image = np.empty((height, width, 3), dtype=np.uint8)
     image[:] = BACKGROUND_RGB
-    image[pixel] = colors[owner[first]]
-    return image.reshape(height, width, 3)
+    drawn = best_owner >= 0
+    image[drawn] = np.asarray(colors)[best_owner[drawn]]
+    return image
 
 
 def save_view_png(path: str | Path, image: np.ndarray, title: str, colorbar: dict | None = None) -> Path:
@@ -156,7 +175,8 @@ def write_error_visualisation(
             ground truth, metres.
         gt_samples, gt_distances_m: ground-truth samples (S, 3) and their distances (S,) to the
             reconstruction (inf where none is near), metres.
-        region: the evaluation region (frames the views).
+        region: the box the views frame (the in-region ground truth's bounds: the same for every
+            method of a scene).
         settings: colour scale, camera, splatting (defaults when None).
         label: prefix of the pictures' titles (e.g. ``tomb / ours``).
 
@@ -180,6 +200,7 @@ def write_error_visualisation(
     shown_samples, shown_coverage = _subsample(rng, settings.max_render_points, gt_samples, coverage_rgb)
     prefix = f"{label}: " if label else ""
     t_mm = 1000.0 * settings.coverage_threshold_m
+    share = 100.0 * covered.mean() if len(covered) else 0.0
     for name, viewpoint in zip(VIEW_NAMES, viewpoints, strict=True):
         image = splat(shown_points, shown_error, viewpoint, intrinsics, settings.point_radius_px)
         paths[f"error_png_{name}"] = save_view_png(
@@ -192,7 +213,7 @@ def write_error_visualisation(
         paths[f"coverage_png_{name}"] = save_view_png(
             out_dir / f"coverage_{name}.png",
             image,
-            f"{prefix}ground truth within {t_mm:g} mm ({100.0 * covered.mean() if len(covered) else 0:.1f} %) ({name})",
+            f"{prefix}ground truth within {t_mm:g} mm ({share:.1f} %) ({name})",
         )
     return {key: str(path) for key, path in paths.items()}
 

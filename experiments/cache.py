@@ -42,7 +42,9 @@ def exclusive_lock(lock_path: Path) -> Iterator[None]:
             fcntl.flock(handle, fcntl.LOCK_UN)
 
 
-def cached_entry(cache_dir: str | Path, stage: str, key: str, build: Callable[[Path], dict]) -> tuple[Path, dict]:
+def cached_entry(
+    cache_dir: str | Path, stage: str, key: str, build: Callable[[Path], dict]
+) -> tuple[Path, dict]:
     """Return the entry directory and record of ``stage``/``key``, building it once if needed.
 
     Args:

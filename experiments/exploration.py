@@ -31,12 +31,18 @@ def exploration_cache_key(cfg: DictConfig) -> str:
         return OmegaConf.to_container(node, resolve=True)
 
     return cache_key(
-        plain(cfg.scene), plain(cfg.camera), plain(cfg.exploration), plain(cfg.render), plain(cfg.reconstruct),
+        plain(cfg.scene),
+        plain(cfg.camera),
+        plain(cfg.exploration),
+        plain(cfg.render),
+        plain(cfg.reconstruct),
         int(cfg.seed),
     )
 
 
-def build_exploration_proxy(scene: Scene, intrinsics: Intrinsics, cfg: DictConfig) -> tuple[trimesh.Trimesh, dict]:
+def build_exploration_proxy(
+    scene: Scene, intrinsics: Intrinsics, cfg: DictConfig
+) -> tuple[trimesh.Trimesh, dict]:
     """Fly, render and reconstruct the exploratory flight once, and return its proxy mesh.
 
     Args:
@@ -59,7 +65,9 @@ def build_exploration_proxy(scene: Scene, intrinsics: Intrinsics, cfg: DictConfi
         plan = plan_exploration(scene.structure_bounds, intrinsics, cfg.exploration, seed)
         write_plan(plan, entry / "plan")
         log.info("exploration: %d viewpoints; rendering", len(plan.viewpoints))
-        rendered = render_flight(scene, plan.viewpoints, intrinsics, entry / "images", cfg.render, kinds=plan.kinds)
+        rendered = render_flight(
+            scene, plan.viewpoints, intrinsics, entry / "images", cfg.render, kinds=plan.kinds
+        )
         proxy, record = build_proxy(entry / "images", entry / "recon", cfg.reconstruct, seed)
         proxy.export(entry / PROXY_FILE)
         return {

@@ -6,7 +6,9 @@ writes, each as PNG and PDF:
 ``flight_<scene>_<planner>``: the planned flight over the scene (3-D view and top view), viewpoints
 coloured by kind, the trajectory in flight order and an arrow along each camera's viewing direction;
 ``flight_paths_<planner>``: that planner's flights over every scene side by side (the paper's Fig. 4);
-``errors_<scene>``: the evaluation's error images of every method side by side (one column per method);
+``errors_<scene>``: the evaluation's error images (``eval/error_<view>.png``) of every method side by
+side, one column per method and one row per view (Fig. 3); ``coverage_<scene>`` the same for the
+ground truth coloured covered/missed (``eval/coverage_<view>.png``);
 ``metrics_vs_images``: accuracy and completeness against the number of images, one panel per scene.
 """
 
@@ -254,16 +256,16 @@ def plot_flight_path(
         The figure: ``axes[0]`` is 3-D, ``axes[1]`` the top view (x right, y up); each holds one
         scatter per kind in order of first appearance.
     """
-    fig = plt.figure(figsize=(12.0, 5.6))
-    ax3d = fig.add_subplot(1, 2, 1, projection="3d")
-    ax_top = fig.add_subplot(1, 2, 2)
+    fig = plt.figure(figsize=(13.0, 5.6))
+    grid = fig.add_gridspec(1, 2, wspace=0.3)
+    ax3d = fig.add_subplot(grid[0, 0], projection="3d")
+    ax_top = fig.add_subplot(grid[0, 1])
     draw_flight_3d(ax3d, viewpoints, kinds, mesh, arrow_length_m, mesh_label)
     draw_flight_top(ax_top, viewpoints, kinds, mesh, arrow_length_m)
     ax_top.set_title("top view")
     ax_top.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
     return fig
 
 
@@ -350,10 +352,15 @@ def plot_metrics_vs_images(
 
 
 def _metric_label(column: str) -> str:
-    if column.startswith("acc") and column.endswith("_m"):
-        return f"error {column[3:-2]} % (m)"
-    if column.startswith("comp_"):
-        return f"completeness {int(column[5:]) / 1000:.3f} m (%)"
+    # Keys as evaluate/settings.py names them: acc90_m, acc99p5_m, comp_050 (mm), comp_007p5.
+    try:
+        if column.startswith("acc") and column.endswith("_m"):
+            return f"error {float(column[3:-2].replace('p', '.')):g} % (m)"
+        if column.startswith("comp_"):
+            t_m = float(column[5:].replace("p", ".")) / 1000.0
+            return f"completeness {t_m:.3f} m (%)" if round(t_m, 3) == t_m else f"completeness {t_m:g} m (%)"
+    except ValueError:
+        pass
     return column
 
 
@@ -433,7 +440,8 @@ def make_figures(
     max_faces: int = 6000,
     accuracy: str = "acc90_m",
     completeness: str = "comp_050",
-    error_glob: str = "eval/**/*.png",
+    error_glob: str = "eval/error_*.png",
+    coverage_glob: str = "eval/coverage_*.png",
     dpi: int = 200,
 ) -> dict[str, list[Path]]:
     """Draw every figure for the runs under ``run_paths`` into ``out_dir``.
@@ -446,17 +454,24 @@ def make_figures(
             (the other one is used when the preferred one is not found).
         max_faces: triangles kept of that mesh.
         accuracy, completeness: the metrics of the metrics-vs-images figure.
-        error_glob: glob (relative to a run dir) of the evaluation's error images.
+        error_glob: glob (relative to a run dir) of the evaluation's error images (one row per view).
+        coverage_glob: glob of its ground-truth coverage images.
         dpi: PNG resolution.
 
     Returns:
-        ``{"flight_paths": [...], "errors": [...], "metrics_vs_images": [...]}`` files written.
+        ``{"flight_paths": [...], "errors": [...], "coverage": [...], "metrics_vs_images": [...]}``
+        files written.
     """
     if mesh_source not in ("ground_truth", "proxy", "none"):
         raise ValueError(f"mesh_source must be ground_truth, proxy or none, got {mesh_source!r}")
     runs = load_runs(run_paths)
     out_dir = Path(out_dir)
-    written: dict[str, list[Path]] = {"flight_paths": [], "errors": [], "metrics_vs_images": []}
+    written: dict[str, list[Path]] = {
+        "flight_paths": [],
+        "errors": [],
+        "coverage": [],
+        "metrics_vs_images": [],
+    }
     groups: dict[tuple[str, str], list[Run]] = {}
     for run in runs:
         groups.setdefault((run.scene, run.planner), []).append(run)
@@ -491,19 +506,24 @@ def make_figures(
             fig = plot_flight_paths_by_scene(flights, title=f"Flight paths: {method_name(planner)}")
             written["flight_paths"] += save_figure(fig, out_dir / f"flight_paths_{planner}", dpi)
 
+    panels = [
+        ("errors", error_glob, "Reconstruction error"),
+        ("coverage", coverage_glob, "Ground truth covered"),
+    ]
     for scene in sorted({s for s, _ in groups}, key=scene_sort_key):
-        columns: dict[str, dict[str, Path]] = {}
-        for planner in sorted({p for s, p in groups if s == scene}, key=method_sort_key):
-            for run in sorted(groups[(scene, planner)], key=lambda r: r.seed):
-                found = error_images(run, error_glob)
-                if found:
-                    columns[f"{method_name(planner)} (seed {run.seed})"] = found
-                    break
-        if columns:
-            fig = plot_error_panel(columns, title=f"Reconstruction error: {scene_name(scene)}")
-            written["errors"] += save_figure(fig, out_dir / f"errors_{scene}", dpi)
-        else:
-            log.info("%s: no evaluation images matching %s, no error panel", scene, error_glob)
+        for kind, pattern, heading in panels:
+            columns: dict[str, dict[str, Path]] = {}
+            for planner in sorted({p for s, p in groups if s == scene}, key=method_sort_key):
+                for run in sorted(groups[(scene, planner)], key=lambda r: r.seed):
+                    found = error_images(run, pattern)
+                    if found:
+                        columns[f"{method_name(planner)} (seed {run.seed})"] = found
+                        break
+            if columns:
+                fig = plot_error_panel(columns, title=f"{heading}: {scene_name(scene)}")
+                written[kind] += save_figure(fig, out_dir / f"{kind}_{scene}", dpi)
+            else:
+                log.info("%s: no evaluation images matching %s, no %s panel", scene, pattern, kind)
 
     frame = runs_frame(runs)
     if {"n_images", accuracy, completeness} <= set(frame.columns):
@@ -533,10 +553,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--completeness", default="comp_050", help="completeness metric of the scatter figure"
     )
-    parser.add_argument("--error-glob", default="eval/**/*.png", help="error images, relative to a run dir")
+    parser.add_argument(
+        "--error-glob", default="eval/error_*.png", help="error images, relative to a run dir"
+    )
+    parser.add_argument("--coverage-glob", default="eval/coverage_*.png", help="coverage images, ditto")
     parser.add_argument("--dpi", type=int, default=200)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    if args.out.exists() and not args.out.is_dir():
+        print(f"error: --out {args.out} exists and is not a directory", file=sys.stderr)
+        return 2
     try:
         written = make_figures(
             args.dirs,
@@ -547,6 +573,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             args.accuracy,
             args.completeness,
             args.error_glob,
+            args.coverage_glob,
             args.dpi,
         )
     except (RunDirectoryError, ValueError) as exc:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -264,19 +265,29 @@ def run_intrinsics(run_dir: str | Path) -> Intrinsics | None:
     return None
 
 
-def recorded_path(run: Run, *names: str) -> Path | None:
-    """The first existing file among ``metrics['paths'][name]`` for ``names`` (relative to the run dir)."""
-    paths = run.metrics.get("paths")
-    if not isinstance(paths, Mapping):
-        return None
+def recorded_path(run: Run, *names: str, file_name: str | None = None) -> Path | None:
+    """The first existing file recorded in the run's metrics under one of ``names``.
+
+    A name is looked up as a flat key of ``metrics.json`` (``gt_mesh_path``: the contract) and in a
+    nested ``paths`` mapping. Relative paths are taken relative to the run directory; an absolute
+    path that no longer exists (a run directory copied from a cluster) is looked for by its file
+    name in the run's ``eval/`` and the run directory itself. A recorded directory counts when it
+    holds ``file_name``.
+    """
+    nested = run.metrics.get("paths")
+    nested = nested if isinstance(nested, Mapping) else {}
     for name in names:
-        value = paths.get(name)
-        if not value:
+        value = run.metrics.get(name) or nested.get(name)
+        if not value or not isinstance(value, str | os.PathLike):
             continue
         path = Path(value)
-        path = path if path.is_absolute() else run.run_dir / path
-        if path.is_file():
-            return path
+        candidates = [path] if path.is_absolute() else [run.run_dir / path]
+        candidates += [run.run_dir / "eval" / path.name, run.run_dir / path.name]
+        for candidate in candidates:
+            if candidate.is_dir() and file_name is not None:
+                candidate = candidate / file_name
+            if candidate.is_file():
+                return candidate
     return None
 
 
@@ -290,17 +301,22 @@ def finite_or_nan(value) -> float:
 
 
 # Keys of ``metrics['paths']`` (or ``plan.json``) that name meshes a figure can draw under a flight.
-GROUND_TRUTH_PATH_KEYS = ("ground_truth_mesh", "gt_mesh", "evaluation_region", "ground_truth")
-PROXY_PATH_KEYS = ("proxy_mesh", "proxy", "proxy_ply", "proxy_path")
+# (evaluate.run records ``gt_mesh_path``: the ground truth cut to the evaluation region; run.py
+# records the exploration cache entry holding ``proxy.ply`` as ``proxy_entry``.)
+GROUND_TRUTH_PATH_KEYS = ("gt_mesh_path", "ground_truth_mesh", "gt_mesh")
+PROXY_PATH_KEYS = ("proxy_path", "proxy_mesh_path", "proxy_mesh", "proxy_entry")
+PROXY_FILE = "proxy.ply"
+# Ground-truth faces kept for display: those within this many metres (sideways) of the evaluation region.
+DISPLAY_MARGIN_M = 5.0
 
 
 def run_scene_mesh(run: Run, prefer: str = "ground_truth"):
     """A mesh to draw under a run's flight: the ground truth or the proxy, whichever is found first.
 
     Looks, in the order ``prefer`` sets, for the ground-truth mesh (the file recorded in
-    ``metrics['paths']``, else ``scene.registry.load_scene(cfg.scene).ground_truth_mesh`` from the
-    run's ``.hydra/config.yaml``) and the proxy (a file recorded in ``metrics['paths']`` or
-    ``plan.json``).
+    ``metrics.json``, else ``scene.registry.load_scene(cfg.scene).ground_truth_mesh`` from the
+    run's ``.hydra/config.yaml``) and the proxy (a file or cache entry recorded in ``metrics.json``
+    or ``plan.json``).
 
     Returns:
         (trimesh.Trimesh, label) with label ``"ground truth"`` or ``"proxy"``, or (None, "") if none is found.
@@ -339,16 +355,21 @@ def _ground_truth_mesh(run: Run):
         log.info("scene.registry is not available: no ground-truth mesh for %s", run.run_dir)
         return None
     try:
-        return load_scene(config.scene).ground_truth_mesh, "ground truth"
+        scene = load_scene(config.scene, cache_dir=config.get("cache_dir", "cache"))
     except Exception as exc:  # noqa: BLE001 - a figure without the mesh beats no figure
         log.warning("cannot load the scene of %s (%s): drawing the flight without it", run.run_dir, exc)
         return None
+    # The scene's ground reaches tens of metres past the structure: keep the part around it.
+    mesh = scene.ground_truth_mesh
+    region = scene.evaluation_region.expanded(DISPLAY_MARGIN_M)
+    keep = np.flatnonzero(region.contains(mesh.triangles_center))
+    return mesh.submesh([keep], append=True), "ground truth"
 
 
 def _proxy_mesh(run: Run):
-    path = recorded_path(run, *PROXY_PATH_KEYS)
+    path = recorded_path(run, *PROXY_PATH_KEYS, file_name=PROXY_FILE)
     if path is None:
         plan = read_plan_record(run.run_dir)
-        path = recorded_path(Run(run.run_dir, {"paths": plan}), *PROXY_PATH_KEYS)
+        path = recorded_path(Run(run.run_dir, plan), *PROXY_PATH_KEYS, file_name=PROXY_FILE)
     mesh = _load_mesh_file(path) if path is not None else None
     return (mesh, "proxy") if mesh is not None else None

@@ -84,6 +84,25 @@ def frustum_polylines(viewpoints: np.ndarray, corners: np.ndarray) -> np.ndarray
     return strokes.reshape(-1, 3)
 
 
+# WebGL renderers without 32-bit indices (SwiftShader, some mobile GPUs) draw garbage for meshes with
+# more vertices than a 16-bit index reaches: keep the mesh below that.
+MAX_BROWSER_VERTICES = 65_000
+
+
+def browser_mesh(mesh, max_faces: int = 60_000):
+    """``mesh`` with duplicate vertices merged, at most ``max_faces`` triangles and fewer than
+    ``MAX_BROWSER_VERTICES`` vertices (quadric decimation where needed)."""
+    import trimesh
+
+    merged = trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), process=True)
+    target = int(max_faces)
+    while True:
+        small = decimate_mesh(merged, target)
+        if len(small.vertices) < MAX_BROWSER_VERTICES or target <= 4:
+            return small
+        target = max(4, int(target * 0.9 * MAX_BROWSER_VERTICES / len(small.vertices)))
+
+
 def _rounded(values: np.ndarray) -> list:
     # Lists (not arrays) so plotly writes plain JSON numbers a reader can find in the file; NaN -> None.
     return [None if not np.isfinite(v) else round(float(v), 4) for v in np.asarray(values, dtype=float)]
@@ -136,13 +155,16 @@ def build_plan_figure(
                 i=faces[:, 0],
                 j=faces[:, 1],
                 k=faces[:, 2],
-                color="lightgrey",
+                color="rgb(214,210,200)",
                 opacity=1.0,
-                flatshading=True,
+                # Smooth shading shares vertices; flat shading triples them and hits the limit below.
+                flatshading=False,
                 name=mesh_label,
                 showlegend=True,
                 hoverinfo="skip",
-                lighting={"ambient": 0.55, "diffuse": 0.7, "specular": 0.05},
+                # plotly's default light sits on the horizon, which leaves roofs and ground black.
+                lighting={"ambient": 0.45, "diffuse": 0.65, "specular": 0.05, "roughness": 0.9},
+                lightposition={"x": 3e4, "y": 5e4, "z": 1e5},
             )
         )
     fig.add_trace(
@@ -209,7 +231,7 @@ def write_viewer(
     run_dir: str | Path,
     out: str | Path | None = None,
     mesh_source: str = "ground_truth",
-    max_faces: int = 50_000,
+    max_faces: int = 60_000,
     frustum_depth_m: float | None = None,
     intrinsics: Intrinsics | None = None,
 ) -> Path:
@@ -240,7 +262,7 @@ def write_viewer(
     mesh, label = None, ""
     if mesh_source != "none":
         mesh, label = run_scene_mesh(Run(run_dir, metrics), prefer=mesh_source)
-        mesh = decimate_mesh(mesh, max_faces) if mesh is not None else None
+        mesh = browser_mesh(mesh, max_faces) if mesh is not None else None
     title = " / ".join(str(metrics[k]) for k in ("scene", "planner") if metrics.get(k))
     title = f"{title}: {len(viewpoints)} viewpoints" if title else f"{len(viewpoints)} viewpoints"
     fig = build_plan_figure(viewpoints, kinds, intrinsics, mesh, label or "mesh", frustum_depth_m, title)
@@ -255,7 +277,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("run_dir", type=Path, help="a run directory (with plan/viewpoints.csv)")
     parser.add_argument("--out", type=Path, help="HTML file to write (default: RUN_DIR/plan.html)")
     parser.add_argument("--mesh", choices=("ground_truth", "proxy", "none"), default="ground_truth")
-    parser.add_argument("--max-faces", type=int, default=50_000, help="triangles kept of the mesh")
+    parser.add_argument("--max-faces", type=int, default=60_000, help="triangles kept of the mesh")
     parser.add_argument(
         "--frustum-depth", type=float, help="frustum length in metres (default: 5%% of the scene)"
     )

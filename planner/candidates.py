@@ -79,8 +79,9 @@ def cone_directions(axis: np.ndarray, angle_deg: float, n: int, phase_deg: float
 
 def candidate_directions(
     normal: np.ndarray, n_frontal: int, frontal_jitter_deg: float, n_side: int, side_angle_deg: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Candidate directions from the point (C, 3) and whether each is frontal (C,).
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Candidate directions from the point (C, 3), whether each is frontal (C,), and the index of
+    the frontal direction each belongs to (C,).
 
     Frontal: the normal and ``n_frontal - 1`` directions at ``frontal_jitter_deg`` around it.
     Side: ``n_side`` directions at ``side_angle_deg`` around every frontal direction.
@@ -93,7 +94,8 @@ def candidate_directions(
     side = [cone_directions(f, side_angle_deg, n_side, phase_deg=22.5 * i) for i, f in enumerate(frontal)]
     side = np.concatenate(side) if n_side > 0 else np.zeros((0, 3))
     dirs = np.concatenate([frontal, side])
-    return dirs, np.r_[np.ones(len(frontal), bool), np.zeros(len(side), bool)]
+    parent = np.r_[np.arange(len(frontal)), np.repeat(np.arange(len(frontal)), n_side)]
+    return dirs, np.r_[np.ones(len(frontal), bool), np.zeros(len(side), bool)], parent
 
 
 def aimed_viewpoints(positions: np.ndarray, target: np.ndarray, limits: FlightLimits) -> np.ndarray:
@@ -106,19 +108,24 @@ def aimed_viewpoints(positions: np.ndarray, target: np.ndarray, limits: FlightLi
 
 def select_spread(directions: np.ndarray, first: int, size: int, allowed=None) -> list[int]:
     """Greedy angular spread: start at ``first``, then add the ``allowed`` index whose smallest
-    angle to the chosen ones is largest (ties: lowest index) until ``size`` are chosen or none
-    are left."""
+    angle to the chosen ones is largest (ties: the smallest sum of cosines to the chosen ones, then
+    the lowest index) until ``size`` are chosen or none are left."""
     chosen = [int(first)]
     d = np.asarray(directions, dtype=float)
-    best_cos = d @ d[first]
+    best_cos = d @ d[first]  # largest cosine to a chosen view = smallest angle
+    sum_cos = best_cos.copy()
     available = np.ones(len(d), bool) if allowed is None else np.asarray(allowed, bool).copy()
     available[first] = False
     while len(chosen) < size and available.any():
-        score = np.where(available, best_cos, np.inf)  # smallest max-cosine = largest min-angle
-        i = int(np.argmin(score))
+        cand = np.flatnonzero(available)
+        # largest smallest-angle first; ties (common: the first view is usually the nearest) go to
+        # the candidate farthest from all chosen views on the whole, then to the lowest index
+        i = int(cand[np.lexsort((cand, np.round(sum_cos[cand], 9), np.round(best_cos[cand], 9)))[0]])
         chosen.append(i)
         available[i] = False
-        best_cos = np.maximum(best_cos, d @ d[i])
+        c = d @ d[i]
+        best_cos = np.maximum(best_cos, c)
+        sum_cos += c
     return chosen
 
 
@@ -137,10 +144,11 @@ class CandidateSettings:
 def valid_candidates(
     point_index: int, model: VisibilityModel, limits: FlightLimits, settings: CandidateSettings
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The valid candidates around one point: viewpoints (C', 5), directions (C', 3), frontal (C',)."""
+    """The valid candidates around one point: viewpoints (C', 5), directions (C', 3), frontal (C',)
+    and parent frontal index (C',)."""
     p = model.points[point_index]
     n = model.normals[point_index]
-    dirs, frontal = candidate_directions(
+    dirs, frontal, parent = candidate_directions(
         n, settings.n_frontal, settings.frontal_jitter_deg, settings.n_side, settings.side_angle_deg
     )
     vps = aimed_viewpoints(p[None] + settings.distance_m * dirs, p, limits)
@@ -148,7 +156,7 @@ def valid_candidates(
     if ok.any():
         rows = np.flatnonzero(ok)
         ok[rows] = model.sees(vps[rows], point_index)
-    return vps[ok], dirs[ok], frontal[ok]
+    return vps[ok], dirs[ok], frontal[ok], parent[ok]
 
 
 def detail_group(
@@ -156,12 +164,20 @@ def detail_group(
 ) -> np.ndarray | None:
     """A candidate group (g, 5) for one point: the most frontal valid view, then angularly spread
     side views; None when no candidate is valid."""
-    vps, dirs, frontal = valid_candidates(point_index, model, limits, settings)
+    vps, dirs, frontal, parent = valid_candidates(point_index, model, limits, settings)
     if len(vps) == 0:
         return None
     alignment = dirs @ model.normals[point_index]
     # the most frontal valid candidate (a side one when every frontal candidate is invalid)
     pool = np.flatnonzero(frontal) if frontal.any() else np.arange(len(vps))
     first = int(pool[np.argmax(alignment[pool])])
-    side = ~frontal if (~frontal).any() else np.ones(len(vps), bool)
-    return vps[select_spread(dirs, first, settings.group_size, allowed=side)]
+    return vps[select_spread(dirs, first, settings.group_size, allowed=side_pool(frontal, parent, first))]
+
+
+def side_pool(frontal: np.ndarray, parent: np.ndarray, first: int) -> np.ndarray:
+    """Side candidates to pick from: those around the chosen first view's frontal direction, or
+    every side candidate when none of those is valid, or every candidate when no side one is."""
+    own = ~frontal & (parent == parent[first])
+    if own.sum() > 0:
+        return own
+    return ~frontal if (~frontal).any() else np.ones(len(frontal), bool)

@@ -65,17 +65,23 @@ def cull(
     removed = tried = 0
     row_of = np.full(n0, -1)
     row_of[ids] = np.arange(len(ids))
+    removal_score: dict[int, float] = {}
     for a, b in tqdm(pairs, desc=desc, leave=False, disable=None):
         if not (present[a] and present[b]):
             continue
         options = [x for x in (a, b) if cullable[x]]
-        scores = [float(state.evaluate([row_of[x]]).R[0]) for x in options]
+        # R without a viewpoint only changes when the set does: score each one once per set
+        for x in options:
+            if x not in removal_score:
+                removal_score[x] = float(state.evaluate([row_of[x]]).R[0])
+        scores = [removal_score[x] for x in options]
         tried += 1
         best = int(np.argmax(scores))
         if scores[best] >= floor:
             victim = options[best]
             state.commit([row_of[victim]])
             present[victim] = False
+            removal_score.clear()
             row_of[present] = np.arange(int(present.sum()))
             row_of[~present] = -1
             removed += 1

@@ -182,10 +182,10 @@ def coverage_point_scores(visible: np.ndarray, distance: np.ndarray, params: Heu
 def overlap_ratios(visible: np.ndarray) -> np.ndarray:
     """r_ij (V, V): common visible points / the smaller visible count; 0 on the diagonal and if empty."""
     a = np.asarray(visible, dtype=np.float32)
-    common = a @ a.T
-    n = a.sum(axis=1)
+    common = np.rint(a @ a.T).astype(np.float64)  # exact counts; the ratio in float64
+    n = np.asarray(visible, bool).sum(axis=1)
     smaller = np.minimum(n[:, None], n[None, :])
-    r = np.where(smaller > 0, common / np.where(smaller > 0, smaller, 1.0), 0.0)
+    r = np.where(smaller > 0, common / np.maximum(smaller, 1), 0.0)
     np.fill_diagonal(r, 0.0)
     return r.astype(float)
 

@@ -159,10 +159,13 @@ def plan_exploration(
     lo_xy = structure_bounds.lo_array[:2]
     hi_xy = structure_bounds.hi_array[:2]
     extent = hi_xy - lo_xy
-    if extent.max() <= min(across_w, along_l):
+    # The images must tile the structure's top: a structure inside one footprint at its top needs
+    # no grid (a lower flight or a single image).
+    top_w, top_l = footprint_m(intrinsics, altitude - top)
+    if extent.max() <= min(top_w, top_l):
         raise PlanningError(
             f"lawnmower: the structure ({extent[0]:.1f} x {extent[1]:.1f} m) fits inside one image "
-            f"footprint ({across_w:.1f} x {along_l:.1f} m) at altitude_m = {altitude:.1f} m; "
+            f"footprint ({top_w:.1f} x {top_l:.1f} m at its top) at altitude_m = {altitude:.1f} m; "
             "lower altitude_m / altitude_above_top_m"
         )
     margin = (

@@ -59,21 +59,72 @@ class ObjectiveState:
         self.params = params
         self.mode = mode
         self.n_points = int(n_points)
-        self.obs = Observations.empty(self.n_points)
-        self.point_rows = np.zeros(0, bool)
-        self.front = np.zeros((0, self.n_points), np.float32)
-        self.dscore = np.zeros((0, self.n_points), np.float32)
-        self.common = np.zeros((0, 0), np.int64)
-        self.n_visible = np.zeros(0, np.int64)
+        self._n = 0
+        self._allocate(16)
         self.point_score = np.zeros(self.n_points)
         self.count = np.zeros(self.n_points, np.int64)
         self.evaluations = 0
         self._parts = self._full_parts()
 
+    # Row storage with spare capacity: appending a viewpoint does not copy the (V, P) arrays.
+    def _allocate(self, capacity: int) -> None:
+        n, n_pt = self._n, self.n_points
+        old = getattr(self, "_vis", None)
+        vis = np.zeros((capacity, n_pt), bool)
+        dist = np.zeros((capacity, n_pt), np.float32)
+        direc = np.zeros((capacity, n_pt, 3), np.float32)
+        cos = np.zeros((capacity, n_pt), np.float32)
+        front = np.zeros((capacity, n_pt), np.float32)
+        dsc = np.zeros((capacity, n_pt), np.float32)
+        prow = np.zeros(capacity, bool)
+        common = np.zeros((capacity, capacity), np.int64)
+        if old is not None and n:
+            for new, cur in zip((vis, dist, direc, cos, front, dsc, prow), self._row_arrays(), strict=True):
+                new[:n] = cur[:n]
+            common[:n, :n] = self._common[:n, :n]
+        self._vis, self._dist, self._dir, self._cos = vis, dist, direc, cos
+        self._front, self._dsc, self._prow, self._common = front, dsc, prow, common
+
+    def _row_arrays(self) -> tuple:
+        return self._vis, self._dist, self._dir, self._cos, self._front, self._dsc, self._prow
+
+    def _write_rows(self, slots: np.ndarray, obs: Observations, point_rows: np.ndarray) -> None:
+        self._vis[slots] = obs.visible
+        self._dist[slots] = obs.distance
+        self._dir[slots] = obs.direction
+        self._cos[slots] = obs.cos_incidence
+        self._front[slots], self._dsc[slots] = self._row_scores(obs)
+        self._prow[slots] = point_rows
+
+    @property
+    def obs(self) -> Observations:
+        n = self._n
+        return Observations(self._vis[:n], self._dist[:n], self._dir[:n], self._cos[:n])
+
+    @property
+    def point_rows(self) -> np.ndarray:
+        return self._prow[: self._n]
+
+    @property
+    def front(self) -> np.ndarray:
+        return self._front[: self._n]
+
+    @property
+    def dscore(self) -> np.ndarray:
+        return self._dsc[: self._n]
+
+    @property
+    def common(self) -> np.ndarray:
+        return self._common[: self._n, : self._n]
+
+    @property
+    def n_visible(self) -> np.ndarray:
+        return self._vis[: self._n].sum(axis=1)
+
     # ----------------------------------------------------------------------------------- basics
     @property
     def n_viewpoints(self) -> int:
-        return len(self.obs)
+        return self._n
 
     @property
     def visible(self) -> np.ndarray:
@@ -96,15 +147,14 @@ class ObjectiveState:
 
     def reset(self, obs: Observations, point_rows: np.ndarray | None = None) -> dict[str, float]:
         """Replace the whole set by ``obs`` (all rows count for points unless ``point_rows`` says)."""
-        self.obs = Observations(
-            obs.visible.copy(), obs.distance.copy(), obs.direction.copy(), obs.cos_incidence.copy()
-        )
         n = len(obs)
-        self.point_rows = np.ones(n, bool) if point_rows is None else np.asarray(point_rows, bool).copy()
-        self.front, self.dscore = self._row_scores(self.obs)
-        a = self.obs.visible.astype(np.float32)
-        self.common = np.rint(a @ a.T).astype(np.int64)
-        self.n_visible = self.obs.visible.sum(axis=1).astype(np.int64)
+        self._n = 0
+        self._allocate(max(16, 2 * n))
+        self._n = n
+        prow = np.ones(n, bool) if point_rows is None else np.asarray(point_rows, bool).reshape(n)
+        self._write_rows(np.arange(n), obs, prow)
+        a = obs.visible.astype(np.float32)
+        self._common[:n, :n] = np.rint(a @ a.T).astype(np.int64)
         self._recompute_points(np.arange(self.n_points))
         self._parts = self._full_parts()
         return self.parts()
@@ -143,7 +193,7 @@ class ObjectiveState:
             self.point_score[cols] = self._combine(count, dmax, None, None)
             return
         u_bar = usum / np.maximum(np.linalg.norm(usum, axis=1, keepdims=True), 1e-300)
-        ang = np.arccos(np.clip(np.einsum("nk,nk->n", u, u_bar[ci]), -1.0, 1.0))
+        ang = np.arccos(np.clip(_dot3(u, u_bar[ci]), -1.0, 1.0))
         sq = np.bincount(ci, ang**2, minlength=len(cols))
         self.point_score[cols] = self._combine(count, dmax.astype(float), fmax.astype(float), sq)
 
@@ -297,12 +347,12 @@ class ObjectiveState:
             usum_l = np.broadcast_to(usum, (lam, t, 3))
         u_bar = usum_l / np.maximum(np.linalg.norm(usum_l, axis=2, keepdims=True), 1e-300)
         # kept pairs against each alternative's mean direction
-        dots = np.einsum("lnk,nk->ln", u_bar[:, ci], u)
+        dots = _dot3(u_bar[:, ci], u[None])
         ang2 = np.arccos(np.clip(dots, -1.0, 1.0)) ** 2
         flat = (np.arange(lam)[:, None] * t + ci[None]).ravel()
         sq = np.bincount(flat, ang2.ravel(), minlength=lam * t).reshape(lam, t)
         if nvis is not None:
-            dn = np.einsum("lmtk,ltk->lmt", ndir.astype(np.float64), u_bar)
+            dn = _dot3(ndir, u_bar[:, None])
             sq += np.where(nvis, np.arccos(np.clip(dn, -1.0, 1.0)) ** 2, 0.0).sum(axis=1)
         return self._combine(count_l, dmax_l.astype(float), fmax_l.astype(float), sq)
 
@@ -320,16 +370,19 @@ class ObjectiveState:
         one_hot = np.zeros((n_keep, n_comp), np.float32)
         one_hot[np.arange(n_keep), labels] = 1.0
         touches = ((f_nk > tau).astype(np.float32) @ one_hot) > 0  # (L, m, n_comp)
-        sizes = np.concatenate([comp_size, np.ones(m, np.int64)])
-        out = np.empty(lam)
-        for i in range(lam):
-            ni, ci = np.nonzero(touches[i])
-            a, b = np.nonzero(np.triu(f_nn[i] > tau, 1))
-            rows = np.concatenate([n_comp + ni, n_comp + a])
-            cols_ = np.concatenate([ci, n_comp + b])
-            g = coo_matrix((np.ones(len(rows)), (rows, cols_)), shape=(n_comp + m, n_comp + m)).tocsr()
-            _, lab = connected_components(g, directed=False)
-            out[i] = np.bincount(lab, weights=sizes).max()
+        # All alternatives in one graph: alternative i owns nodes [i * g, (i + 1) * g), g = n_comp + m
+        # (the kept components first, then its new viewpoints).
+        g = n_comp + m
+        li, ni, ci = np.nonzero(touches)
+        lj, a, b = np.nonzero(np.triu(f_nn > tau, 1))
+        rows = np.concatenate([li * g + n_comp + ni, lj * g + n_comp + a])
+        cols = np.concatenate([li * g + ci, lj * g + n_comp + b])
+        graph = coo_matrix((np.ones(len(rows), np.int8), (rows, cols)), shape=(lam * g, lam * g)).tocsr()
+        n_lab, lab = connected_components(graph, directed=False)
+        sizes = np.tile(np.concatenate([comp_size, np.ones(m, np.int64)]), lam)
+        label_size = np.bincount(lab, weights=sizes, minlength=n_lab)
+        out = np.zeros(lam)
+        np.maximum.at(out, np.repeat(np.arange(lam), g), label_size[lab])
         return out
 
     # --------------------------------------------------------------------------------- commit
@@ -348,32 +401,28 @@ class ObjectiveState:
             touched |= self.obs.visible[remove].any(axis=0)
         if m:
             touched |= new.visible.any(axis=0)
-        front_n, dsc_n = self._row_scores(new)
         if m == len(remove) and m:
             slots = remove
-            self.obs.visible[slots] = new.visible
-            self.obs.distance[slots] = new.distance
-            self.obs.direction[slots] = new.direction
-            self.obs.cos_incidence[slots] = new.cos_incidence
-            self.point_rows[slots] = npr
-            self.front[slots] = front_n
-            self.dscore[slots] = dsc_n
         else:
-            keep = np.ones(self.n_viewpoints, bool)
-            keep[remove] = False
-            self.obs = Observations.concatenate([self.obs.take(np.flatnonzero(keep)), new], self.n_points)
-            self.point_rows = np.concatenate([self.point_rows[keep], npr])
-            self.front = np.concatenate([self.front[keep], front_n])
-            self.dscore = np.concatenate([self.dscore[keep], dsc_n])
-            self.common = self.common[np.ix_(keep, keep)]
-            self.common = np.pad(self.common, ((0, m), (0, m)))
-            slots = np.arange(self.n_viewpoints - m, self.n_viewpoints)
-        if len(slots):
-            a = self.obs.visible.astype(np.float32)
+            if len(remove):
+                keep = np.ones(self._n, bool)
+                keep[remove] = False
+                kept = np.flatnonzero(keep)
+                k = len(kept)
+                for arr in self._row_arrays():
+                    arr[:k] = arr[kept]
+                self._common[:k, :k] = self._common[np.ix_(kept, kept)]
+                self._n = k
+            if self._n + m > len(self._vis):
+                self._allocate(max(2 * len(self._vis), self._n + m))
+            slots = np.arange(self._n, self._n + m)
+            self._n += m
+        if m:
+            self._write_rows(slots, new, npr)
+            a = self._vis[: self._n].astype(np.float32)
             rows = np.rint(a[slots] @ a.T).astype(np.int64)
-            self.common[slots, :] = rows
-            self.common[:, slots] = rows.T
-        self.n_visible = self.obs.visible.sum(axis=1).astype(np.int64)
+            self._common[slots, : self._n] = rows
+            self._common[: self._n, slots] = rows.T
         self._recompute_points(np.flatnonzero(touched))
         self._parts = self._full_parts()
         return self.parts()
@@ -390,3 +439,8 @@ def _topk_values(f: np.ndarray, k: int) -> np.ndarray:
 def _topk_sum(f: np.ndarray, k: int) -> np.ndarray:
     """Sum of the k largest values along the last axis (missing values count as 0)."""
     return _topk_values(f, k).sum(axis=-1)
+
+
+def _dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Dot products over a last axis of length 3 (broadcasting); cheaper than einsum here."""
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]

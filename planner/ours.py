@@ -21,17 +21,25 @@ from collections.abc import Mapping
 
 import numpy as np
 import trimesh
+from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from planner.base import Plan, PlanningError
-from planner.candidates import CandidateSettings, FlightLimits, detail_group, select_spread, valid_candidates
+from planner.candidates import (
+    CandidateSettings,
+    FlightLimits,
+    detail_group,
+    select_spread,
+    side_pool,
+    valid_candidates,
+)
 from planner.cmaes_refine import CmaSettings, refine_clusters
 from planner.culling import cull
 from planner.heuristics import HeuristicParams, global_score
 from planner.objective import ObjectiveState
 from planner.sampling import sample_surface, validate_proxy
 from planner.trajectory import flight_length, order_viewpoints
-from planner.visibility import Observations, VisibilityLimits, VisibilityModel
+from planner.visibility import VisibilityLimits, VisibilityModel
 from scene.camera import Intrinsics
 
 DEFAULTS: dict = {
@@ -232,15 +240,14 @@ def _add_viewpoints(
 def _coverage_group(point_index, state, model, limits, settings: CandidateSettings):
     """A model-coverage group: the frontal candidate with the best coverage objective, then
     angularly spread side candidates."""
-    vps, dirs, frontal = valid_candidates(point_index, model, limits, settings)
+    vps, dirs, frontal, parent = valid_candidates(point_index, model, limits, settings)
     if len(vps) == 0:
         return None
     pool = np.flatnonzero(frontal) if frontal.any() else np.arange(len(vps))
     obs = model.observe(vps[pool])
     gains = state.evaluate([], obs, len(pool), new_point_rows=np.ones(1, bool)).R
     first = int(pool[int(np.argmax(gains))])
-    side = ~frontal if (~frontal).any() else np.ones(len(vps), bool)
-    return vps[select_spread(dirs, first, settings.group_size, allowed=side)]
+    return vps[select_spread(dirs, first, settings.group_size, allowed=side_pool(frontal, parent, first))]
 
 
 def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: int) -> Plan:
@@ -259,6 +266,13 @@ def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: 
     Raises:
         PlanningError: empty or degenerate proxy, impossible limits, no valid viewpoint.
     """
+    # One BLAS thread: the hot path is many small products and CMA-ES's 60 x 60 eigendecompositions,
+    # which a multi-threaded OpenBLAS slows down by an order of magnitude on a shared 2-core machine.
+    with threadpool_limits(limits=1):
+        return _plan(proxy, intrinsics, params, seed)
+
+
+def _plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: int) -> Plan:
     t_start = time.perf_counter()
     cfg = resolve_params(params)
     validate_proxy(proxy)
@@ -436,7 +450,7 @@ def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: 
             cov_excluded,
             float(cv["repair_threshold"]),
             int(cv["repair_max_groups"]),
-            False,
+            True,
             f"coverage round {r + 1}",
         )
         rec.record("coverage_addition", r, cstate, kinds, **stats)
@@ -469,7 +483,9 @@ def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: 
 
     # ------------------------------------------------------------------ final score and order
     vps = np.asarray(viewpoints)
-    final_obs = det_model.observe(vps)
+    # The final R: Eq. 10 with the detail heuristics over every view, seen within the coverage
+    # range (the detail range would make every coverage view see nothing).
+    final_obs = cov_model.observe(vps)
     final = global_score(
         final_obs.visible, final_obs.distance, final_obs.direction, final_obs.cos_incidence, det_params
     )

@@ -73,7 +73,7 @@ DEFAULTS = {
     "fov_margin_deg": 2.0,
     "structure_min_height_m": 0.5,
     "takeoff_xyz": None,
-    "tsp_runs": 10,
+    "tsp_runs": 1,
     "progress": True,
 }
 
@@ -159,6 +159,8 @@ class SmithObjective:
         self.cos = obs.cos_incidence
         self.scale = (1.0 - obs.distance / self.d_max).astype(np.float32)
         self.active = np.ones(len(self.viewpoints), bool)
+        self._points32 = model.points.astype(np.float32)
+        self._normals32 = model.normals.astype(np.float32)
         n_points = model.n_points
         self.h = np.empty(n_points)
         self.ray_dir = np.zeros((n_points, self.max_rays, 3), np.float32)
@@ -228,11 +230,11 @@ class SmithObjective:
             the best yaw (B,) and pitch (B,) in degrees.
         """
         pos = np.asarray(positions, dtype=np.float32).reshape(-1, 3)
-        pts = self.model._points32
+        pts = self._points32
         to_cam = pos[:, None, :] - pts[None]  # (B, P, 3)
         dist = np.linalg.norm(to_cam, axis=-1)
         unit = to_cam / np.maximum(dist, 1e-9)[..., None]
-        cos = np.einsum("bpk,pk->bp", unit, self.model._normals32)
+        cos = np.einsum("bpk,pk->bp", unit, self._normals32)
         n_rays = self.ray_valid.sum(axis=1)
         cand = (dist < self.d_max) & (cos >= MIN_COS_INCIDENCE) & (n_rays < self.max_rays)[None]
         bi, si = np.nonzero(cand)
@@ -348,13 +350,15 @@ class NelderMeadStepper:
 def _far_apart_views(positions: np.ndarray, budget: np.ndarray, separation: float, rng) -> np.ndarray:
     """Views drawn by remaining budget, kept when farther than ``separation`` from those kept."""
     draws = rng.choice(len(budget), size=len(budget), p=budget / budget.sum())
-    conflict = np.sum((positions[:, None] - positions[None]) ** 2, axis=-1) < separation * separation
+    sep2 = separation * separation
     blocked = np.zeros(len(budget), bool)
     chosen: list[int] = []
     for idx in draws.tolist():
         if not blocked[idx]:
             chosen.append(idx)
-            blocked |= conflict[idx]
+            blocked |= np.sum((positions - positions[idx]) ** 2, axis=1) < sep2
+            if blocked.all():
+                break
     return np.asarray(chosen, dtype=np.intp)
 
 

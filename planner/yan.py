@@ -63,8 +63,10 @@ DEFAULTS = {
     "adjacency_m": 1.0,
     "key_max_overlap": 0.95,
     "key_min_samples": 5,
+    "min_coverage": 0.95,
     "takeoff_xyz": None,
     "tsp_runs": 1,
+    "tsp_cluster_size": 300,
     "batch_size": 2000,
     "progress": True,
 }
@@ -159,6 +161,18 @@ def view_sampling_space(model: VisibilityModel, proxy: trimesh.Trimesh, params: 
             f"{d_max:.2f}] m above min_altitude_m = {params['min_altitude_m']} m is empty"
         )
     return inside
+
+
+def closest_points(model: VisibilityModel, positions: np.ndarray) -> np.ndarray:
+    """(N, 3) closest proxy surface points of positions (N, 3), in metres.
+
+    Uses the visibility model's Open3D ray-casting scene (no second copy of the proxy); the model
+    has no public closest-point query yet.
+    """
+    import open3d as o3d
+
+    query = o3d.core.Tensor(np.asarray(positions, dtype=np.float32).reshape(-1, 3))
+    return model._scene.compute_closest_points(query)["points"].numpy().astype(float)
 
 
 def aim(positions: np.ndarray, targets: np.ndarray, pitch_min: float, pitch_max: float) -> np.ndarray:
@@ -269,25 +283,58 @@ def select_global(
     return chosen
 
 
-def key_images(order_vis: sparse.csr_matrix, max_overlap: float, min_samples: int) -> np.ndarray:
+def key_images(order_vis: sparse.csr_matrix, max_overlap: float, min_samples: int, need: int) -> np.ndarray:
     """Mask (V,) of the key views along a flight order.
 
     A view is dropped when it observes fewer than ``min_samples`` samples or when the share of its
-    samples also observed by the previous key view exceeds ``max_overlap``.
+    samples also observed by the previous key view exceeds ``max_overlap`` -- but only if every
+    sample it observes stays observed min(need, its initial count) times (coverage is kept).
     """
     vis = order_vis.tocsr()
-    keep = np.zeros(vis.shape[0], bool)
+    counts = np.asarray(vis.sum(axis=0)).ravel()
+    floor = np.minimum(counts, need)
+    keep = np.ones(vis.shape[0], bool)
     last = None
     for v in range(vis.shape[0]):
         cols = vis.indices[vis.indptr[v] : vis.indptr[v + 1]]
-        if len(cols) < min_samples:
+        redundant = len(cols) < min_samples
+        if not redundant and last is not None:
+            redundant = np.isin(cols, last, assume_unique=True).mean() > max_overlap
+        if redundant and np.all(counts[cols] - 1 >= floor[cols]):
+            keep[v] = False
+            counts[cols] -= 1
             continue
-        if last is not None and len(cols):
-            if np.isin(cols, last, assume_unique=True).mean() > max_overlap:
-                continue
-        keep[v] = True
         last = cols
     return keep
+
+
+def order_in_clusters(
+    positions: np.ndarray, start, runs: int, cluster_size: int, rng: np.random.Generator
+) -> np.ndarray:
+    """Flight order (V,) of many viewpoints: a TSP path over spatial clusters, then within each.
+
+    LKH on thousands of nodes takes many minutes on two cores; like the reimplementations of
+    Yan et al. (TSP over subspaces, then inside each), the positions are split by k-means into
+    clusters of about ``cluster_size``, the cluster centres ordered by the shared TSP path and
+    each cluster's views ordered by it from the end of the previous cluster.
+    """
+    from scipy.cluster.vq import kmeans2
+
+    n = len(positions)
+    if n <= cluster_size:
+        return order_viewpoints(positions, start=start, runs=runs)
+    k = int(math.ceil(n / cluster_size))
+    centres, labels = kmeans2(positions, k, seed=rng, minit="++")
+    used = np.unique(labels)
+    cluster_order = used[order_viewpoints(centres[used], start=start, runs=runs)]
+    order: list[np.ndarray] = []
+    here = start
+    for c in cluster_order:
+        members = np.flatnonzero(labels == c)
+        local = members[order_viewpoints(positions[members], start=here, runs=runs)]
+        order.append(local)
+        here = positions[local[-1]]
+    return np.concatenate(order)
 
 
 def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: int) -> Plan:
@@ -323,10 +370,7 @@ def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: 
     jitter = (rng.random((n_cand, 3)) - 0.5) * float(p["voxel_size_m"])
     positions = space[pick] + jitter
     positions[:, 2] = np.maximum(positions[:, 2], float(p["min_altitude_m"]))
-    import open3d as o3d  # the closest-point query of the shared ray-casting scene
-
-    closest = model._scene.compute_closest_points(o3d.core.Tensor(positions.astype(np.float32)))
-    candidates = aim(positions, closest["points"].numpy().astype(float), *pitch_lim)
+    candidates = aim(positions, closest_points(model, positions), *pitch_lim)
     timings["candidates"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -349,11 +393,15 @@ def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: 
             taken[best] = True
             local_vps.append(aim(positions[best][None], points[low[k]][None], *pitch_lim)[0])
     local_vps = np.array(local_vps).reshape(-1, 5)
+    counts_local = np.zeros(len(points), np.int64)
     if len(local_vps):
         local_scores = view_scores(
             model, local_vps, d_min, d_opt, float(p["theta_t_deg"]), int(p["batch_size"])
         )
-        counts += np.asarray((local_scores >= float(p["min_score"])).sum(axis=0)).ravel().astype(np.int64)
+        counts_local = (
+            np.asarray((local_scores >= float(p["min_score"])).sum(axis=0)).ravel().astype(np.int64)
+        )
+        counts += counts_local
     timings["local"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -367,17 +415,26 @@ def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: 
         raise PlanningError("yan: no candidate observes any surface sample; check target_distance_m")
     t0 = time.perf_counter()
     start = None if p["takeoff_xyz"] is None else np.asarray(p["takeoff_xyz"], dtype=float)
-    order = order_viewpoints(selected[:, :3], start=start, runs=int(p["tsp_runs"]))
+    order = order_in_clusters(selected[:, :3], start, int(p["tsp_runs"]), int(p["tsp_cluster_size"]), rng)
     timings["tsp"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     ordered = selected[order]
     ordered_vis = view_scores(model, ordered, d_min, d_opt, float(p["theta_t_deg"]), int(p["batch_size"]))
     ordered_vis = (ordered_vis >= float(p["min_score"])).astype(np.float32).tocsr()
-    keep = key_images(ordered_vis, float(p["key_max_overlap"]), int(p["key_min_samples"]))
+    need = int(p["min_observations"])
+    keep = key_images(ordered_vis, float(p["key_max_overlap"]), int(p["key_min_samples"]), need)
     timings["key_images"] = time.perf_counter() - t0
     timings["total"] = sum(timings.values())
     final_counts = np.asarray(ordered_vis[keep].sum(axis=0)).ravel()
+    # Samples the candidate set can observe ``need`` times: the greedy selection must cover them.
+    coverable = np.asarray((scores >= float(p["min_score"])).sum(axis=0)).ravel() + counts_local >= need
+    covered = float(np.mean(final_counts[coverable] >= need)) if coverable.any() else 0.0
+    if covered < float(p["min_coverage"]):
+        raise PlanningError(
+            f"yan: the selection covers {covered:.3f} of the coverable samples {need} times, below "
+            f"min_coverage = {p['min_coverage']}"
+        )
     info = {
         "parameters": {k: v for k, v in p.items() if k != "progress"},
         "timings_s": timings,
@@ -392,6 +449,8 @@ def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: 
         "n_global": int(len(chosen)),
         "n_before_key_images": int(len(selected)),
         "n_key_images": int(keep.sum()),
+        "fraction_coverable": float(np.mean(coverable)),
+        "fraction_coverable_covered": covered,
         "fraction_observed_min": float(np.mean(final_counts >= int(p["min_observations"]))),
         "fraction_observed_once": float(np.mean(final_counts >= 1)),
         "rays_cast": model.rays_cast,

@@ -44,7 +44,8 @@ def align_to_gnss(
     min_common = int(cfg["min_common_images"])
     if len(reg_names) < max(min_common, 3):
         raise ReconstructionError(
-            f"only {len(reg_names)} registered images have GNSS positions; alignment needs {max(min_common, 3)}",
+            f"only {len(reg_names)} registered images have GNSS positions; "
+            f"alignment needs {max(min_common, 3)}",
             {"stage": "align"},
         )
     ransac = pycolmap.RANSACOptions()
@@ -56,7 +57,8 @@ def align_to_gnss(
     )
     if world_from_model is None:
         raise ReconstructionError(
-            f"similarity alignment to GNSS failed (RANSAC threshold {ransac.max_error:.3f} m)", {"stage": "align"}
+            f"similarity alignment to GNSS failed (RANSAC threshold {ransac.max_error:.3f} m)",
+            {"stage": "align"},
         )
     # Least squares (Umeyama) over all RANSAC inliers: the robust estimate alone leaves an error of
     # the order of the GNSS noise in the model's rotation, the full fit averages it down.
@@ -67,8 +69,13 @@ def align_to_gnss(
     if refined is not None:
         world_from_model = refined
     reconstruction.transform(world_from_model)
-    log.info("aligned to GNSS: scale %.4f, %d/%d inliers within %.3f m", world_from_model.scale,
-             int(inliers.sum()), len(inliers), ransac.max_error)
+    log.info(
+        "aligned to GNSS: scale %.4f, %d/%d inliers within %.3f m",
+        world_from_model.scale,
+        int(inliers.sum()),
+        len(inliers),
+        ransac.max_error,
+    )
     return world_from_model
 
 
@@ -109,15 +116,25 @@ def pose_errors(reconstruction: pycolmap.Reconstruction, flight: Flight) -> dict
         "n_registered": n_reg,
         "registered_fraction": n_reg / n_images if n_images else 0.0,
     }
-    keys = ("position_error_median_m", "position_error_p90_m", "position_error_max_m",
-            "rotation_error_median_deg", "rotation_error_p90_deg", "rotation_error_max_deg")
+    keys = (
+        "position_error_median_m",
+        "position_error_p90_m",
+        "position_error_max_m",
+        "rotation_error_median_deg",
+        "rotation_error_p90_deg",
+        "rotation_error_max_deg",
+    )
     if n_reg == 0:
         return record | dict.fromkeys(keys)
     true_idx = np.asarray(true_idx)
     position_err = np.linalg.norm(np.asarray(est_center) - flight.positions[true_idx], axis=1)
     rotation_err = rotation_angles_deg(np.asarray(est_rot), flight.rotations[true_idx])
     values = (
-        np.median(position_err), np.percentile(position_err, 90), position_err.max(),
-        np.median(rotation_err), np.percentile(rotation_err, 90), rotation_err.max(),
+        np.median(position_err),
+        np.percentile(position_err, 90),
+        position_err.max(),
+        np.median(rotation_err),
+        np.percentile(rotation_err, 90),
+        rotation_err.max(),
     )
     return record | {k: float(v) for k, v in zip(keys, values, strict=True)}

@@ -86,7 +86,9 @@ def select_backend(requested: str) -> str:
     if requested == "auto":
         return "cuda" if pycolmap.has_cuda else "cpu"
     if requested == "cuda" and not pycolmap.has_cuda:
-        raise ValueError("reconstruct.dense.backend=cuda but this pycolmap has no CUDA (install pycolmap-cuda12)")
+        raise ValueError(
+            "reconstruct.dense.backend=cuda but this pycolmap has no CUDA (install pycolmap-cuda12)"
+        )
     return requested
 
 
@@ -100,7 +102,9 @@ def prepare_workspace(sparse_dir: Path, image_dir: Path, workspace: Path, cfg: M
     workspace.parent.mkdir(parents=True, exist_ok=True)
     options = pycolmap.UndistortCameraOptions()
     options.max_image_size = int(cfg["max_image_size"])
-    pycolmap.undistort_images(workspace, sparse_dir, image_dir, output_type="COLMAP", undistort_options=options)
+    pycolmap.undistort_images(
+        workspace, sparse_dir, image_dir, output_type="COLMAP", undistort_options=options
+    )
     return workspace
 
 
@@ -112,12 +116,20 @@ def read_views(workspace: Path) -> dict[str, View]:
         image = rec.image(image_id)
         cam = image.camera
         if cam.model != pycolmap.CameraModelId.PINHOLE:
-            raise ValueError(f"{workspace}: undistorted camera of {image.name} is {cam.model}, expected PINHOLE")
+            raise ValueError(
+                f"{workspace}: undistorted camera of {image.name} is {cam.model}, expected PINHOLE"
+            )
         fx, fy, cx, cy = cam.params
         K = np.array([[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]])
         pose = image.cam_from_world()
-        views[image.name] = View(image.name, K, pose.rotation.matrix(), np.asarray(pose.translation),
-                                 int(cam.width), int(cam.height))
+        views[image.name] = View(
+            image.name,
+            K,
+            pose.rotation.matrix(),
+            np.asarray(pose.translation),
+            int(cam.width),
+            int(cam.height),
+        )
     return views
 
 
@@ -202,7 +214,9 @@ def rectify_pair(ref: View, src: View, disparity_offset: int = 0, pad_left: int 
     if width * height > _MAX_RECTIFIED_AREA_RATIO * ref.width * ref.height + pad_left * height:
         return None
     shift = np.array([[1.0, 0.0, -x_min], [0.0, 1.0, -y_min], [0.0, 0.0, 1.0]])
-    return RectifiedPair(shift @ H_ref0, shift @ H_src0, shift @ K0, rect_from_world, baseline, (width, height))
+    return RectifiedPair(
+        shift @ H_ref0, shift @ H_src0, shift @ K0, rect_from_world, baseline, (width, height)
+    )
 
 
 def _warp_corners(H: np.ndarray, width: int, height: int) -> np.ndarray | None:
@@ -386,9 +400,7 @@ def compute_depth_maps_cpu(workspace: Path, cfg: Mapping) -> dict[str, int]:
     for image_id in rec.reg_image_ids():
         image = rec.image(image_id)
         ids = [p.point3D_id for p in image.points2D if p.has_point3D()]
-        points_by_name[image.name] = (
-            np.array([rec.point3D(i).xyz for i in ids]) if ids else np.zeros((0, 3))
-        )
+        points_by_name[image.name] = np.array([rec.point3D(i).xyz for i in ids]) if ids else np.zeros((0, 3))
     min_consistent = int(cfg["min_consistent_partners"])
     rel_tol = float(cfg["consistency_rel_tol"])
     window = int(cfg["normal_window_px"])
@@ -424,7 +436,9 @@ def compute_depth_maps_cpu(workspace: Path, cfg: Mapping) -> dict[str, int]:
         log.info("%d of %d views have no stereo partner", n_without, len(names))
     valid_pixels = {}
     with ThreadPoolExecutor(max_workers=threads) as pool:
-        for name, count in tqdm(pool.map(one_view, names), total=len(names), desc="stereo (SGBM)", unit="view"):
+        for name, count in tqdm(
+            pool.map(one_view, names), total=len(names), desc="stereo (SGBM)", unit="view"
+        ):
             valid_pixels[name] = count
     return valid_pixels
 
@@ -456,8 +470,14 @@ def fuse(workspace: Path, output_ply: Path, cfg: Mapping, names) -> int:
     options.max_depth_error = float(fcfg["max_depth_error"])
     options.max_normal_error = float(fcfg["max_normal_error"])
     options.max_image_size = int(cfg["max_image_size"])
-    fused = pycolmap.stereo_fusion(output_ply, workspace, workspace_format="COLMAP", input_type="geometric",
-                                   options=options, output_type="PLY")
+    fused = pycolmap.stereo_fusion(
+        output_ply,
+        workspace,
+        workspace_format="COLMAP",
+        input_type="geometric",
+        options=options,
+        output_type="PLY",
+    )
     return int(fused.num_points3D()) if hasattr(fused, "num_points3D") else -1
 
 

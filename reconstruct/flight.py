@@ -58,8 +58,9 @@ def read_flight(image_dir: str | Path) -> Flight:
     image_dir = Path(image_dir)
     path = image_dir / CAMERAS_FILE
     if not path.is_file():
-        raise ReconstructionError(f"{path}: missing (the renderer writes it beside the images)",
-                                  {"stage": "input"})
+        raise ReconstructionError(
+            f"{path}: missing (the renderer writes it beside the images)", {"stage": "input"}
+        )
     try:
         record = json.loads(path.read_text())
         intr = record["intrinsics"]
@@ -70,7 +71,9 @@ def read_flight(image_dir: str | Path) -> Flight:
         translations = np.array([im["cam_from_world"]["translation"] for im in images], dtype=float)
         kinds = tuple(str(im.get("kind", "")) for im in images)
     except (KeyError, TypeError, ValueError, json.JSONDecodeError) as exc:
-        raise ReconstructionError(f"{path}: malformed ({type(exc).__name__}: {exc})", {"stage": "input"}) from exc
+        raise ReconstructionError(
+            f"{path}: malformed ({type(exc).__name__}: {exc})", {"stage": "input"}
+        ) from exc
     if "focal_px" in intr and not math.isclose(float(intr["focal_px"]), intrinsics.focal_px, rel_tol=1e-6):
         raise ReconstructionError(
             f"{path}: focal_px {intr['focal_px']} disagrees with hfov_deg {intrinsics.hfov_deg} "
@@ -81,7 +84,9 @@ def read_flight(image_dir: str | Path) -> Flight:
     if n == 0:
         rotations, translations = np.zeros((0, 3, 3)), np.zeros((0, 3))
     if rotations.shape != (n, 3, 3) or translations.shape != (n, 3):
-        raise ReconstructionError(f"{path}: cam_from_world must be 3x3 rotations and 3-vectors", {"stage": "input"})
+        raise ReconstructionError(
+            f"{path}: cam_from_world must be 3x3 rotations and 3-vectors", {"stage": "input"}
+        )
     if len(set(names)) != n:
         raise ReconstructionError(f"{path}: duplicate image names", {"stage": "input"})
     missing = [name for name in names if not (image_dir / name).is_file()]

@@ -63,7 +63,7 @@ def _plain(value):
 
 
 def flight_content_key(image_dir: Path, flight: Flight, cfg: Mapping, seed: int) -> str:
-    """SHA-256 over the image bytes, ``cameras.json``, the relevant config, the seed and pycolmap's version."""
+    """SHA-256 of the image bytes, ``cameras.json``, the relevant config, the seed, pycolmap's version."""
     digest = hashlib.sha256()
     config = {key: _plain(cfg[key]) for key in FLIGHT_CONFIG_KEYS}
     header = {"config": config, "seed": int(seed), "pycolmap": pycolmap.__version__}
@@ -153,8 +153,14 @@ def reconstruct_flight(image_dir, out_dir, cfg: Mapping, seed: int) -> dict:
 
     sigma = float(cfg["gnss"]["sigma_m"])
     gnss = simulate_gnss(flight.positions, sigma, seed)
-    write_json_atomic(out_dir / "gnss.json", {"sigma_m": sigma, "seed": int(seed),
-                                              "positions": dict(zip(flight.names, gnss.tolist(), strict=True))})
+    write_json_atomic(
+        out_dir / "gnss.json",
+        {
+            "sigma_m": sigma,
+            "seed": int(seed),
+            "positions": dict(zip(flight.names, gnss.tolist(), strict=True)),
+        },
+    )
     record: dict = {"status": "running", "n_images": len(flight), "gnss_sigma_m": sigma}
     try:
         with colmap_log_to(out_dir):
@@ -168,12 +174,17 @@ def reconstruct_flight(image_dir, out_dir, cfg: Mapping, seed: int) -> dict:
     return record
 
 
-def _reconstruct(flight: Flight, out_dir: Path, gnss: np.ndarray, sigma: float, cfg: Mapping, seed: int,
-                 record: dict) -> dict:
+def _reconstruct(
+    flight: Flight, out_dir: Path, gnss: np.ndarray, sigma: float, cfg: Mapping, seed: int, record: dict
+) -> dict:
     sfm = run_sfm(flight, out_dir, gnss, sigma, cfg["sfm"], seed)
     times = {f"{k}_time_s": v for k, v in sfm.times_s.items()}
-    record |= times | {"align_time_s": sum(sfm.times_s.values()), "matching_method": sfm.matching_method,
-                       "n_models": sfm.n_models, "database": str(out_dir / "database.db")}
+    record |= times | {
+        "align_time_s": sum(sfm.times_s.values()),
+        "matching_method": sfm.matching_method,
+        "n_models": sfm.n_models,
+        "database": str(out_dir / "database.db"),
+    }
     rec = sfm.reconstruction
     n_reg = rec.num_reg_images()
     fraction = n_reg / len(flight)
@@ -191,7 +202,10 @@ def _reconstruct(flight: Flight, out_dir: Path, gnss: np.ndarray, sigma: float, 
     record |= pose_errors(rec, flight)
     log.info(
         "registered %d/%d, camera position error median %.3f m (p90 %.3f m), rotation %.3f deg",
-        n_reg, len(flight), record["position_error_median_m"], record["position_error_p90_m"],
+        n_reg,
+        len(flight),
+        record["position_error_median_m"],
+        record["position_error_p90_m"],
         record["rotation_error_median_deg"],
     )
     sparse_dir = out_dir / "sparse"
@@ -200,13 +214,23 @@ def _reconstruct(flight: Flight, out_dir: Path, gnss: np.ndarray, sigma: float, 
     record["n_sparse_points"] = int(rec.num_points3D())
 
     dense = dense_reconstruct(sparse_dir, flight.image_dir, out_dir, cfg["dense"])
-    record |= {"dense_backend": dense["backend"], "dense_time_s": dense["dense_time_s"],
-               "n_depth_maps": dense["n_depth_maps"], "n_dense_points": dense["n_dense_points"]}
+    record |= {
+        "dense_backend": dense["backend"],
+        "dense_time_s": dense["dense_time_s"],
+        "n_depth_maps": dense["n_depth_maps"],
+        "n_dense_points": dense["n_dense_points"],
+    }
     if dense["dense_path"] is None or dense["n_dense_points"] == 0:
-        raise ReconstructionError(f"{flight.image_dir}: dense reconstruction produced no points", {"stage": "dense"})
+        raise ReconstructionError(
+            f"{flight.image_dir}: dense reconstruction produced no points", {"stage": "dense"}
+        )
     record["dense_ply"] = dense["dense_path"]
-    log.info("dense: %d points from %d depth maps in %.1f s", dense["n_dense_points"], dense["n_depth_maps"],
-             dense["dense_time_s"])
+    log.info(
+        "dense: %d points from %d depth maps in %.1f s",
+        dense["n_dense_points"],
+        dense["n_depth_maps"],
+        dense["dense_time_s"],
+    )
     return record
 
 
@@ -260,7 +284,8 @@ def build_proxy(image_dir, cache_dir, cfg: Mapping, seed: int) -> tuple[trimesh.
     if recon["registered_fraction"] < min_fraction:
         raise ReconstructionError(
             f"{image_dir}: exploratory flight registered {recon['registered_fraction']:.1%} < "
-            f"reconstruct.proxy.min_registered_fraction {min_fraction:.0%}; refusing a proxy from a partial model",
+            f"reconstruct.proxy.min_registered_fraction {min_fraction:.0%}; "
+            "refusing a proxy from a partial model",
             recon | {"status": "failed", "stage": "proxy"},
         )
     key = hashlib.sha256(
@@ -275,8 +300,12 @@ def build_proxy(image_dir, cache_dir, cfg: Mapping, seed: int) -> tuple[trimesh.
     bounds = proxy_bounds(Path(recon["sparse_dir"]), float(pcfg["crop_margin_m"]))
     mesh = poisson_proxy(recon["dense_ply"], bounds, cfg)
     write_atomic(cache_dir / PROXY_FILE, lambda p: mesh.export(p))
-    proxy_record = {"status": "ok", "proxy_faces": len(mesh.faces), "proxy_time_s": time.perf_counter() - start,
-                    "proxy_path": str(cache_dir / PROXY_FILE)}
+    proxy_record = {
+        "status": "ok",
+        "proxy_faces": len(mesh.faces),
+        "proxy_time_s": time.perf_counter() - start,
+        "proxy_path": str(cache_dir / PROXY_FILE),
+    }
     write_json_atomic(cache_dir / PROXY_RECORD_FILE, proxy_record | {"content_key": key})
     log.info("proxy: %d faces in %.1f s", len(mesh.faces), proxy_record["proxy_time_s"])
     return mesh, recon | proxy_record | {"proxy_cached": False}

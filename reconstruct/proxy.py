@@ -145,7 +145,12 @@ def poisson_proxy(dense_ply, bounds: Box, cfg: Mapping) -> trimesh.Trimesh:
         radius = float(pcfg["normal_radius_m"])
         cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=30))
         cloud.orient_normals_consistent_tangent_plane(15)
-    log.info("poisson proxy: %d points (voxel %.3f m), depth %d", len(cloud.points), voxel, int(pcfg["poisson_depth"]))
+    log.info(
+        "poisson proxy: %d points (voxel %.3f m), depth %d",
+        len(cloud.points),
+        voxel,
+        int(pcfg["poisson_depth"]),
+    )
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         mesh, densities = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
             cloud, depth=int(pcfg["poisson_depth"]), linear_fit=False
@@ -163,5 +168,7 @@ def poisson_proxy(dense_ply, bounds: Box, cfg: Mapping) -> trimesh.Trimesh:
     mesh.remove_unreferenced_vertices()
     out = trimesh.Trimesh(vertices=np.asarray(mesh.vertices), faces=np.asarray(mesh.triangles), process=True)
     if len(out.faces) == 0:
-        raise ReconstructionError(f"{dense_ply}: Poisson reconstruction produced no surface", {"stage": "proxy"})
+        raise ReconstructionError(
+            f"{dense_ply}: Poisson reconstruction produced no surface", {"stage": "proxy"}
+        )
     return decimate(out, int(pcfg["face_budget"]))

@@ -59,15 +59,20 @@ def sfm_options(cfg: Mapping, seed: int = 0) -> SfmOptions:
     threads = int(cfg.get("num_threads", -1))
     matching_method = str(mcfg["method"])
     if matching_method not in MATCHING_METHODS:
-        raise ValueError(f"reconstruct.sfm.matching.method must be one of {MATCHING_METHODS}, got {matching_method!r}")
+        raise ValueError(
+            f"reconstruct.sfm.matching.method must be one of {MATCHING_METHODS}, got {matching_method!r}"
+        )
     mapping_method = str(pcfg["method"])
     if mapping_method not in MAPPING_METHODS:
-        raise ValueError(f"reconstruct.sfm.mapping.method must be one of {MAPPING_METHODS}, got {mapping_method!r}")
+        raise ValueError(
+            f"reconstruct.sfm.mapping.method must be one of {MAPPING_METHODS}, got {mapping_method!r}"
+        )
 
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = threads
     extraction.max_image_size = int(ecfg["max_image_size"])
     extraction.sift.max_num_features = int(ecfg["max_num_features"])
+    extraction.sift.first_octave = int(ecfg["first_octave"])
 
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = threads
@@ -195,7 +200,9 @@ def match_features(database_path: Path, n_images: int, options: SfmOptions) -> s
     return method
 
 
-def map_reconstruction(database_path: Path, image_dir: Path, options: SfmOptions) -> tuple[pycolmap.Reconstruction, int]:
+def map_reconstruction(
+    database_path: Path, image_dir: Path, options: SfmOptions
+) -> tuple[pycolmap.Reconstruction, int]:
     """Run the mapper (incremental or global); return the model with most registered images and the
     number of models found. Raise ReconstructionError when no model is found.
     """
@@ -206,8 +213,10 @@ def map_reconstruction(database_path: Path, image_dir: Path, options: SfmOptions
         else:
             models = pycolmap.global_mapping(database_path, image_dir, tmp, options=options.global_)
     if not models:
-        raise ReconstructionError("the mapper found no model (no image pair could be initialised)",
-                                  {"stage": "mapping", "n_registered": 0, "registered_fraction": 0.0})
+        raise ReconstructionError(
+            "the mapper found no model (no image pair could be initialised)",
+            {"stage": "mapping", "n_registered": 0, "registered_fraction": 0.0},
+        )
     best = max(models.values(), key=lambda rec: rec.num_reg_images())
     return best, len(models)
 
@@ -242,13 +251,23 @@ def run_sfm(
     keypoints = extract_features(database_path, flight, options)
     times["extraction"] = time.perf_counter() - start
     n_with_features = sum(1 for n in keypoints.values() if n > 0)
-    log.info("extraction: %.1f s, %d of %d images have features (median %d keypoints)",
-             times["extraction"], n_with_features, len(flight), int(np.median(list(keypoints.values()) or [0])))
+    log.info(
+        "extraction: %.1f s, %d of %d images have features (median %d keypoints)",
+        times["extraction"],
+        n_with_features,
+        len(flight),
+        int(np.median(list(keypoints.values()) or [0])),
+    )
     if n_with_features < 2:
         raise ReconstructionError(
             f"{flight.image_dir}: only {n_with_features} of {len(flight)} images have SIFT features",
-            {"stage": "extraction", "n_images": len(flight), "n_images_with_features": n_with_features,
-             "n_registered": 0, "registered_fraction": 0.0},
+            {
+                "stage": "extraction",
+                "n_images": len(flight),
+                "n_images_with_features": n_with_features,
+                "n_registered": 0,
+                "registered_fraction": 0.0,
+            },
         )
     write_pose_priors(database_path, flight.names, gnss_positions, gnss_sigma_m)
 
@@ -260,7 +279,12 @@ def run_sfm(
     start = time.perf_counter()
     reconstruction, n_models = map_reconstruction(database_path, flight.image_dir, options)
     times["mapping"] = time.perf_counter() - start
-    log.info("mapping: %.1f s, %d model(s), largest has %d of %d images",
-             times["mapping"], n_models, reconstruction.num_reg_images(), len(flight))
+    log.info(
+        "mapping: %.1f s, %d model(s), largest has %d of %d images",
+        times["mapping"],
+        n_models,
+        reconstruction.num_reg_images(),
+        len(flight),
+    )
     shutil.rmtree(work_dir / "mapper", ignore_errors=True)
     return SfmResult(reconstruction, method, times, n_models)

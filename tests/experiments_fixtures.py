@@ -30,8 +30,8 @@ def write_run(
         "planner": planner,
         "seed": seed,
         "status": status,
-        "versions": {"numpy": np.__version__},
-        "paths": {"dense": "recon/dense.ply"},
+        "numpy_version": np.__version__,
+        "reconstruction_path": "recon/dense.ply",
     }
     if status == "failed":
         record["error"] = error

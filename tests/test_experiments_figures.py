@@ -130,15 +130,23 @@ def test_cli_writes_png_and_pdf(tmp_path):
             n_images=300 + i,
             acc90_m=0.2,
             comp_050=30.0,
-            paths={"ground_truth_mesh": str(root / "gt.ply")},
+            gt_mesh_path=str(root / "gt.ply"),
         )
         (run_dir / "eval").mkdir()
-        Image.fromarray(np.full((20, 30, 3), 40 * i, np.uint8)).save(run_dir / "eval" / "error_view0.png")
+        # The evaluation's file names (evaluate/visualise.py): error_<view>.png, coverage_<view>.png.
+        for name in ("error_nadir.png", "error_oblique_ne.png", "coverage_nadir.png"):
+            Image.fromarray(np.full((20, 30, 3), 40 * i, np.uint8)).save(run_dir / "eval" / name)
     out = tmp_path / "figures"
     assert figures.main([str(root), "--out", str(out), "--dpi", "50"]) == 0
     expected = {
         f"{stem}.{ext}"
-        for stem in ("flight_tomb_smith", "flight_tomb_ours", "errors_tomb", "metrics_vs_images")
+        for stem in (
+            "flight_tomb_smith",
+            "flight_tomb_ours",
+            "errors_tomb",
+            "coverage_tomb",
+            "metrics_vs_images",
+        )
         for ext in ("png", "pdf")
     }
     assert {p.name for p in out.iterdir()} == expected
@@ -147,4 +155,7 @@ def test_cli_writes_png_and_pdf(tmp_path):
         assert data[:4] == (b"\x89PNG" if name.endswith(".png") else b"%PDF")
     with Image.open(out / "flight_tomb_ours.png") as image:
         assert image.size[0] > image.size[1] > 100
+    # errors: 2 views (rows) x 2 methods (columns); coverage: 1 view, so it is about half as tall.
+    with Image.open(out / "errors_tomb.png") as errors, Image.open(out / "coverage_tomb.png") as coverage:
+        assert errors.size[1] > 1.5 * coverage.size[1]
     assert figures.main([str(tmp_path / "nothing"), "--out", str(out)]) == 2

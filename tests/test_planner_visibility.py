@@ -80,8 +80,10 @@ def test_visibility_matches_brute_force_with_occlusion():
     # the geometry returned with the matrix
     d = np.linalg.norm(vps[:, None, :3] - points[None], axis=-1)
     np.testing.assert_allclose(got.distance, d, rtol=1e-5, atol=1e-4)
-    np.testing.assert_allclose(np.linalg.norm(got.direction, axis=-1), 1.0, atol=1e-5)
-    np.testing.assert_allclose(got.cos_incidence, np.einsum("vpk,pk->vp", got.direction, normals), atol=1e-5)
+    unit = (vps[:, None, :3] - points[None]) / d[..., None]
+    np.testing.assert_allclose(got.direction[got.visible], unit[got.visible], atol=1e-5)
+    np.testing.assert_array_equal(got.direction[~got.visible], 0.0)
+    np.testing.assert_allclose(got.cos_incidence, np.einsum("vpk,pk->vp", unit, normals), atol=1e-5)
 
 
 def test_wall_hides_the_face_behind_it():

@@ -27,7 +27,7 @@ from reconstruct.pipeline import build_proxy, flight_content_key, reconstruct_fl
 from reconstruct.proxy import degraded_ground_truth, poisson_proxy
 from reconstruct.sfm import map_reconstruction, sfm_options
 from scene.base import Box, MeshPart, Scene
-from scene.camera import Intrinsics, cam_from_world, cam_from_world_rigid, look_at
+from scene.camera import Intrinsics, cam_from_world, look_at
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "conf" / "reconstruct" / "default.yaml"
@@ -39,6 +39,7 @@ def reconstruct_cfg(**overrides):
     for key, value in overrides.items():
         OmegaConf.update(cfg, key, value, merge=False)
     return cfg
+
 
 # ----------------------------------------------------------------------------- a ray-cast box world
 
@@ -107,14 +108,19 @@ def raycast_box_world(boxes, texture, texel_m, rot, t, intr: Intrinsics) -> np.n
     size = texture.shape[0]
     tex_uv = (coords / texel_m) % size
     sampled = cv2.remap(
-        texture, tex_uv[:, 0].reshape(h, w).astype(np.float32), tex_uv[:, 1].reshape(h, w).astype(np.float32),
-        cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP,
+        texture,
+        tex_uv[:, 0].reshape(h, w).astype(np.float32),
+        tex_uv[:, 1].reshape(h, w).astype(np.float32),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_WRAP,
     ).reshape(-1)
     value = np.where(np.isfinite(best_t), (0.15 + 0.85 * sampled) * shade, 0.55)
     return np.clip(value * 255.0, 0, 255).astype(np.uint8).reshape(h, w)
 
 
-def ring_viewpoints(n_ring: int, radius: float, height: float, target, n_nadir_side: int, nadir_height: float):
+def ring_viewpoints(
+    n_ring: int, radius: float, height: float, target, n_nadir_side: int, nadir_height: float
+):
     """Viewpoints (V, 5): a ring aimed at ``target`` plus a nadir grid (metres, degrees)."""
     rows = []
     for a in np.linspace(0.0, 2 * np.pi, n_ring, endpoint=False):
@@ -138,8 +144,14 @@ def write_box_world_flight(image_dir: Path, viewpoints: np.ndarray, intr: Intrin
         gray = raycast_box_world(BOXES, texture, 0.02, rot, t, intr)
         name = f"{i:06d}.png"
         cv2.imwrite(str(image_dir / name), cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR))
-        images.append({"name": name, "viewpoint": vp.tolist(), "kind": "test",
-                       "cam_from_world": {"rotation": rot.tolist(), "translation": t.tolist()}})
+        images.append(
+            {
+                "name": name,
+                "viewpoint": vp.tolist(),
+                "kind": "test",
+                "cam_from_world": {"rotation": rot.tolist(), "translation": t.tolist()},
+            }
+        )
     record = {"intrinsics": intr.as_dict(), "images": images}
     (image_dir / "cameras.json").write_text(json.dumps(record, indent=1))
     return image_dir
@@ -191,7 +203,9 @@ def test_png_writing_survives_every_pipeline_import(tmp_path):
         print(int(np.abs(a.astype(int) - image).max()), int(np.abs(b.astype(int) - image).max()))
         """
     )
-    done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.split() == ["0", "0"]
 
@@ -228,7 +242,9 @@ def test_sgbm_pair_depth_of_a_textured_plane():
     intr = Intrinsics(320, 240, 60.0)
     ref, src = plane_views(intr, [(0.0, 0.0), (3.0, 1.0)], height=12.0)
     texture = noise_texture(1024, seed=3)
-    images = [raycast_box_world([], texture, 0.02, view.rotation, view.translation, intr) for view in (ref, src)]
+    images = [
+        raycast_box_world([], texture, 0.02, view.rotation, view.translation, intr) for view in (ref, src)
+    ]
     points = np.random.default_rng(0).uniform([-3, -2, 0], [3, 2, 0], (50, 3))
     cfg = reconstruct_cfg().dense
     depth = pair_depth(ref, src, images[0], images[1], points, cfg)
@@ -259,13 +275,15 @@ def test_fusion_of_plane_depth_maps_lies_on_the_plane(tmp_path):
         cam = sparse_points @ view.rotation.T + view.translation
         keypoints = cam[:, :2] / cam[:, 2:] * intr.focal_px + [intr.cx, intr.cy]
         image = pycolmap.Image(name=view.name, keypoints=keypoints, camera_id=1, image_id=i + 1)
-        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(view.rotation), view.translation))
+        rec.add_image_with_trivial_frame(
+            image, pycolmap.Rigid3d(pycolmap.Rotation3d(view.rotation), view.translation)
+        )
     for k, xyz in enumerate(sparse_points):
         track = pycolmap.Track()
         for i in range(len(views)):
             track.add_element(i + 1, k)
         rec.add_point3D(xyz, track)
-    for i, view in enumerate(views):
+    for view in views:
         gray = raycast_box_world([], texture, 0.02, view.rotation, view.translation, intr)
         cv2.imwrite(str(workspace / "images" / view.name), gray)
         depth = plane_depth(view, plane_z)
@@ -306,8 +324,14 @@ def test_mapping_and_alignment_on_a_synthetic_dataset(tmp_path):
         names.append(image.name)
         rotations.append(image.cam_from_world().rotation.matrix())
         translations.append(np.asarray(image.cam_from_world().translation))
-    flight = Flight(tmp_path, Intrinsics(1024, 768, 60.0), tuple(names), np.array(rotations),
-                    np.array(translations), ("test",) * len(names))
+    flight = Flight(
+        tmp_path,
+        Intrinsics(1024, 768, 60.0),
+        tuple(names),
+        np.array(rotations),
+        np.array(translations),
+        ("test",) * len(names),
+    )
     sigma = 0.005 * float(np.ptp(flight.positions, axis=0).max())  # GNSS noise: 0.5 % of the extent
     gnss = simulate_gnss(flight.positions, sigma, seed=1)
     gnss_error_median = float(np.median(np.linalg.norm(gnss - flight.positions, axis=1)))
@@ -359,8 +383,10 @@ def test_reconstruct_flight_registers_aligns_and_densifies(box_reconstruction):
     points = np.asarray(o3d.io.read_point_cloud(record["dense_ply"]).points)
     assert len(points) == record["n_dense_points"] > 5000
     distance = trimesh.proximity.closest_point(box_world_mesh(), points)[1]
-    # GSD about 4 cm/px at 11 m: 90 % of the fused points within 6 cm of the true surface.
-    assert np.percentile(distance, 90) < 0.06
+    # GSD about 4 cm/px at 11 m, and the cameras themselves sit 3 cm (median) off after alignment to
+    # 5 cm GNSS: 90 % of the fused points within 2 GSD of the true surface, half within 1 GSD.
+    assert np.percentile(distance, 90) < 0.08
+    assert np.median(distance) < 0.04
 
 
 def test_reconstruct_flight_reuses_unchanged_outputs(box_flight, box_reconstruction):
@@ -415,8 +441,14 @@ def _flight_of_images(image_dir: Path, images, intr: Intrinsics) -> Path:
         name = f"{i:06d}.png"
         cv2.imwrite(str(image_dir / name), image)
         rot, t = cam_from_world(np.array([2.0 * i, 0.0, 10.0, 90.0, -90.0]))
-        entries.append({"name": name, "viewpoint": [2.0 * i, 0.0, 10.0, 90.0, -90.0], "kind": "test",
-                        "cam_from_world": {"rotation": rot.tolist(), "translation": t.tolist()}})
+        entries.append(
+            {
+                "name": name,
+                "viewpoint": [2.0 * i, 0.0, 10.0, 90.0, -90.0],
+                "kind": "test",
+                "cam_from_world": {"rotation": rot.tolist(), "translation": t.tolist()},
+            }
+        )
     (image_dir / "cameras.json").write_text(json.dumps({"intrinsics": intr.as_dict(), "images": entries}))
     return image_dir
 
@@ -475,7 +507,10 @@ def test_degraded_ground_truth_is_cropped_decimated_and_noised():
     ground = np.array([[-50.0, -50.0, 0.0], [50.0, -50.0, 0.0], [50.0, 50.0, 0.0], [-50.0, 50.0, 0.0]])
     scene = Scene(
         "boxes",
-        [MeshPart("ground", ground, np.array([[0, 1, 2], [0, 2, 3]])), MeshPart("box", box.vertices, box.faces)],
+        [
+            MeshPart("ground", ground, np.array([[0, 1, 2], [0, 2, 3]])),
+            MeshPart("box", box.vertices, box.faces),
+        ],
         {},
         structure_bounds=Box((-2.0, -3.0, 0.0), (2.0, 3.0, 3.0)),
         evaluation_region=Box((-7.0, -8.0, -0.5), (7.0, 8.0, 4.0)),
@@ -503,3 +538,15 @@ def test_written_normal_map_is_planar_like_colmap(tmp_path):
     assert raw.startswith(header)
     data = np.frombuffer(raw[len(header) :], np.float32)
     assert np.allclose(data, np.repeat([0.6, 0.0, -0.8], 6))
+
+
+def test_dense_backend_selection_follows_pycolmap_cuda():
+    from reconstruct.dense import select_backend
+
+    assert select_backend("auto") == ("cuda" if pycolmap.has_cuda else "cpu")
+    assert select_backend("cpu") == "cpu"
+    if not pycolmap.has_cuda:
+        with pytest.raises(ValueError, match="no CUDA"):
+            select_backend("cuda")
+    with pytest.raises(ValueError, match="backend"):
+        select_backend("opencl")

@@ -106,7 +106,11 @@ def marker_scene() -> Scene:
     markers = [sphere_part(f"marker{i}", p, MARKER_RADIUS_M) for i, p in enumerate(marker_points())]
     parts = [ground_part(60.0, "noise"), *markers]
     return Scene(
-        "markers", parts, {"noise": noise_texture()}, Box((-5, -5, 0), (5, 5, 5)), Box((-60, -60, 0), (60, 60, 5))
+        "markers",
+        parts,
+        {"noise": noise_texture()},
+        Box((-5, -5, 0), (5, 5, 5)),
+        Box((-60, -60, 0), (60, 60, 5)),
     )
 
 
@@ -138,7 +142,7 @@ def test_marker_projection_matches_colmap(backend, tmp_path):
     reason = probe_backend(backend)
     if reason is not None:
         pytest.skip(f"{backend} cannot render on this machine: {reason}")
-    code = f"from tests.test_render import render_marker_flight; render_marker_flight({backend!r}, {str(tmp_path)!r})"
+    code = f"import tests.test_render as t; t.render_marker_flight({backend!r}, {str(tmp_path)!r})"
     env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
     env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
     proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True)
@@ -187,7 +191,9 @@ def lit_scene() -> Scene:
     """Plain albedo-200 ground with a 4 x 4 x 10 m tower at the origin (for light and shadow)."""
     albedo = np.full((16, 16, 3), 200, np.uint8)
     parts = [ground_part(80.0, "plain"), box_part("tower", (-2, -2, 0), (2, 2, 10), color=(160, 160, 160))]
-    return Scene("lit", parts, {"plain": albedo}, Box((-2, -2, 0), (2, 2, 10)), Box((-80, -80, 0), (80, 80, 10)))
+    return Scene(
+        "lit", parts, {"plain": albedo}, Box((-2, -2, 0), (2, 2, 10)), Box((-80, -80, 0), (80, 80, 10))
+    )
 
 
 @pytest.fixture(scope="module")
@@ -227,13 +233,17 @@ def test_appearance_does_not_depend_on_the_camera(lit_renderer):
             [-30.0, -30.0 + 10.0, 17.32, -90.0, -60.0],  # 60 deg from the north
         ]
     )
-    wall_views = np.array([[-14.0, 0.0, 6.0, 0.0, 0.0], [-10.0, -8.0, 6.0, 45.0, 0.0], [-8.0, 4.0, 9.0, -33.69, -24.0]])
+    wall_views = np.array(
+        [[-14.0, 0.0, 6.0, 0.0, 0.0], [-10.0, -8.0, 6.0, 45.0, 0.0], [-8.0, 4.0, 9.0, -33.69, -24.0]]
+    )
     for points, views, normal, albedo in (
         (ground_point, ground_views, (0, 0, 1), 200),
         (wall_point, wall_views, (-1, 0, 0), 160),
     ):
         pixels, _ = project_points(points, views, cam)
-        colours = np.array([sample(lit_renderer.render(v), px[0]) for v, px in zip(views, pixels, strict=True)])
+        colours = np.array(
+            [sample(lit_renderer.render(v), px[0]) for v, px in zip(views, pixels, strict=True)]
+        )
         expected = expected_level(albedo, normal, cfg, sunlit=True)
         # Same colour from every camera (no headlight, no specular), and the one the lights predict.
         assert np.ptp(colours, axis=0).max() <= 1.0, colours
@@ -269,17 +279,31 @@ def test_mesh_geometry_stays_at_world_coordinates():
     rng = np.random.default_rng(3)
     tetra = MeshPart(
         "tetra",
-        np.array([[250.0, -180.0, 12.0], [262.0, -179.0, 12.5], [251.0, -160.0, 13.0], [255.0, -175.0, 30.0]]),
+        np.array(
+            [[250.0, -180.0, 12.0], [262.0, -179.0, 12.5], [251.0, -160.0, 13.0], [255.0, -175.0, 30.0]]
+        ),
         np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]]),
     )
     blob = trimesh.creation.icosphere(subdivisions=2, radius=3.0)
     blob_vertices = blob.vertices * np.array([1.0, 2.5, 0.7]) + rng.normal(0, 0.2, blob.vertices.shape)
-    blob_part = MeshPart("blob", blob_vertices + [-140.0, 310.0, 8.0], blob.faces, uv=rng.random((len(blob_vertices), 2)),
-                         texture="t")
-    scene = Scene("far", [ground_part(400.0), tetra, blob_part], {"t": noise_texture()},
-                  Box((-150, -200, 0), (270, 320, 30)), Box((-400, -400, 0), (400, 400, 30)))
+    blob_part = MeshPart(
+        "blob",
+        blob_vertices + [-140.0, 310.0, 8.0],
+        blob.faces,
+        uv=rng.random((len(blob_vertices), 2)),
+        texture="t",
+    )
+    scene = Scene(
+        "far",
+        [ground_part(400.0), tetra, blob_part],
+        {"t": noise_texture()},
+        Box((-150, -200, 0), (270, 320, 30)),
+        Box((-400, -400, 0), (400, 400, 30)),
+    )
     built = build_model(scene, Intrinsics(64, 48, 60.0), render_cfg())
     model = built.model
+    # Render-only geoms: no convex hull was computed (nor could be drawn instead of the mesh).
+    assert (model.mesh_graphadr == -1).all()
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
     for geom, part in enumerate(scene.parts):
@@ -299,10 +323,21 @@ def test_vertex_colours_and_texture_orientation(tmp_path):
     image = np.zeros((8, 8, 3), np.uint8)
     image[:4] = (200, 0, 0)
     image[4:] = (0, 0, 200)
-    quad = MeshPart("quad", [[-10, -10, 0], [10, -10, 0], [10, 10, 0], [-10, 10, 0]], [[0, 1, 2], [0, 2, 3]],
-                    uv=[[0, 0], [1, 0], [1, 1], [0, 1]], texture="rb")
+    quad = MeshPart(
+        "quad",
+        [[-10, -10, 0], [10, -10, 0], [10, 10, 0], [-10, 10, 0]],
+        [[0, 1, 2], [0, 2, 3]],
+        uv=[[0, 0], [1, 0], [1, 1], [0, 1]],
+        texture="rb",
+    )
     green = box_part("green", (12, -1, 0), (14, 1, 2), color=(0, 220, 0))
-    scene = Scene("orient", [quad, green], {"rb": image}, Box((-10, -10, 0), (14, 10, 2)), Box((-10, -10, 0), (14, 10, 2)))
+    scene = Scene(
+        "orient",
+        [quad, green],
+        {"rb": image},
+        Box((-10, -10, 0), (14, 10, 2)),
+        Box((-10, -10, 0), (14, 10, 2)),
+    )
     cfg = render_cfg(**{"shadows.enabled": False, "antialias_samples": 0})
     with SceneRenderer(scene, Intrinsics(200, 200, 90.0), cfg) as renderer:
         # Nadir with yaw 90: +y (v = 1) is the top of the image.
@@ -311,8 +346,9 @@ def test_vertex_colours_and_texture_orientation(tmp_path):
         np.testing.assert_allclose(sample(img, (100, 50)), [top_level, 0, 0], atol=2.0)
         np.testing.assert_allclose(sample(img, (100, 150)), [0, 0, top_level], atol=2.0)
         box_top = renderer.render(Viewpoint(13, 0, 6, 0, -90)).astype(float)
-        np.testing.assert_allclose(sample(box_top, (100, 100)), [0, expected_level(220, (0, 0, 1), cfg, True), 0],
-                                   atol=2.0)
+        np.testing.assert_allclose(
+            sample(box_top, (100, 100)), [0, expected_level(220, (0, 0, 1), cfg, True), 0], atol=2.0
+        )
 
 
 def test_render_flight_refuses_bad_viewpoints_before_writing(tmp_path, lit_scene):
@@ -326,7 +362,9 @@ def test_render_flight_refuses_bad_viewpoints_before_writing(tmp_path, lit_scene
     with pytest.raises(ValueError, match=r"shape \(V, 5\)"):
         render_flight(lit_scene, np.zeros((2, 4)), Intrinsics(64, 48, 60.0), out, render_cfg())
     with pytest.raises(ValueError, match="got 1 kinds for 2 viewpoints"):
-        render_flight(lit_scene, viewpoints[:1].repeat(2, 0), Intrinsics(64, 48, 60.0), out, render_cfg(), ["a"])
+        render_flight(
+            lit_scene, viewpoints[:1].repeat(2, 0), Intrinsics(64, 48, 60.0), out, render_cfg(), ["a"]
+        )
     with pytest.raises(ValueError, match="render.backend must be one of"):
         render_flight(lit_scene, viewpoints[:1], Intrinsics(64, 48, 60.0), out, render_cfg(backend="vulkan"))
     assert not (out / "cameras.json").exists()
@@ -383,3 +421,18 @@ def test_no_backend_gives_an_error_naming_both(tmp_path):
     assert "no off-screen OpenGL back-end works" in proc.stderr
     assert "egl: " in proc.stderr and "osmesa: " in proc.stderr
     assert "PyOpenGL disabled by the test" in proc.stderr
+
+
+def test_cli_refuses_a_nan_viewpoint(tmp_path):
+    csv_path = tmp_path / "viewpoints.csv"
+    csv_path.write_text("index,x,y,z,yaw_deg,pitch_deg,kind\n0,0,0,30,0,-90,grid\n1,0,nan,30,0,-90,grid\n")
+    out = tmp_path / "images"
+    proc = subprocess.run(
+        [sys.executable, "-m", "render", "tomb", str(csv_path), str(out)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode == 2
+    assert str(csv_path) in proc.stderr and "viewpoint 1 has a non-finite value" in proc.stderr
+    assert not out.exists()

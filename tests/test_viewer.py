@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import base64
 import json
 import math
 import re
@@ -59,7 +60,7 @@ def test_viewer_html_is_self_contained_and_holds_the_plan(tmp_path):
         0,
         plan=plan,
         camera={"width": 1024, "height": 768, "hfov_deg": 60.0},
-        paths={"ground_truth_mesh": str(tmp_path / "gt.ply")},
+        gt_mesh_path=str(tmp_path / "gt.ply"),
     )
     out = tmp_path / "view" / "plan.html"
     assert viewer.main([str(run_dir), "--out", str(out), "--frustum-depth", "2.5"]) == 0
@@ -86,8 +87,40 @@ def test_viewer_html_is_self_contained_and_holds_the_plan(tmp_path):
     assert traces["ground truth"]["type"] == "mesh3d"
 
 
+def test_viewer_draws_the_proxy_from_the_cache_entry(tmp_path):
+    entry = tmp_path / "cache" / "exploration" / "abc123"
+    entry.mkdir(parents=True)
+    proxy = trimesh.creation.icosphere(subdivisions=3, radius=4.0)  # 1280 faces
+    proxy.export(entry / "proxy.ply")
+    run_dir = write_run(tmp_path, "tomb", "ours", 0, plan=square_plan(), proxy_entry=str(entry))
+    out = viewer.write_viewer(run_dir, mesh_source="proxy", max_faces=300)
+    traces = {t.get("name"): t for t in plot_data(out.read_text())}
+    assert out == run_dir / "plan.html"
+    assert traces["proxy"]["type"] == "mesh3d"
+    assert "detail frusta" not in traces  # the run records no camera: no frusta, no made-up one
+    i = traces["proxy"]["i"]
+    n_faces = (
+        len(i) if isinstance(i, list) else len(base64.b64decode(i["bdata"])) // np.dtype(i["dtype"]).itemsize
+    )
+    assert 100 < n_faces <= 300
+
+
 def test_viewer_rejects_a_directory_without_a_plan(tmp_path, capsys):
     run_dir = write_run(tmp_path, "tomb", "ours", 0)
     assert viewer.main([str(run_dir)]) == 2
     assert "has no plan/viewpoints.csv" in capsys.readouterr().err
     assert not (run_dir / "plan.html").exists()
+
+
+def test_browser_mesh_merges_and_limits_vertices(monkeypatch):
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=3.0)  # 2562 vertices, 5120 faces
+    # Every face with its own three vertices (as exported with per-face UVs): 15360 vertices.
+    unmerged = trimesh.Trimesh(
+        sphere.triangles.reshape(-1, 3), np.arange(15360).reshape(-1, 3), process=False
+    )
+    merged = viewer.browser_mesh(unmerged, max_faces=10_000)
+    assert (len(merged.vertices), len(merged.faces)) == (2562, 5120)
+    monkeypatch.setattr(viewer, "MAX_BROWSER_VERTICES", 500)
+    small = viewer.browser_mesh(unmerged, max_faces=10_000)
+    assert len(small.vertices) < 500 and len(small.faces) > 300
+    np.testing.assert_allclose(small.bounds, sphere.bounds, atol=0.3)

@@ -72,8 +72,27 @@ def _body(b: Builder) -> None:
         x0, x1 = (8.0, 18.0) if sx > 0 else (-18.0, -8.0)
         aisle_window = dict(width=2.0, sill=15.5, spring=18.2, depth=0.6, arch=True)
         side = "east" if sx > 0 else "west"
-        b.add(box_walls(x0, _Y_FRONT, x1, _Y_BACK, 0.0, 21.0, 1.2, "tezontle", {side: _bay_windows(length, 8.0, aisle_window)}, "wood"))
-        b.add(box((x0 - 0.3 * (sx < 0), _Y_FRONT - 0.3, 21.0), (x1 + 0.3 * (sx > 0), _Y_BACK + 0.3, 21.8), "stone"))
+        b.add(
+            box_walls(
+                x0,
+                _Y_FRONT,
+                x1,
+                _Y_BACK,
+                0.0,
+                21.0,
+                1.2,
+                "tezontle",
+                {side: _bay_windows(length, 8.0, aisle_window)},
+                "wood",
+            )
+        )
+        b.add(
+            box(
+                (x0 - 0.3 * (sx < 0), _Y_FRONT - 0.3, 21.0),
+                (x1 + 0.3 * (sx > 0), _Y_BACK + 0.3, 21.8),
+                "stone",
+            )
+        )
         xc = 0.5 * (x0 + x1)
         for k in range(int(length // 8.0)):
             y = _Y_FRONT + 4.0 + 8.0 * k
@@ -85,12 +104,32 @@ def _body(b: Builder) -> None:
         # Side chapels: 8 m deep, 14 m high, a round window and a portal-like recess per bay.
         c0, c1 = (18.0, 26.0) if sx > 0 else (-26.0, -18.0)
         chapel_window = dict(width=2.2, sill=6.0, spring=9.5, depth=0.8, arch=True)
-        b.add(box_walls(c0, _Y_FRONT + 5.0, c1, _Y_BACK - 3.0, 0.0, 14.0, 1.0, "tezontle",
-                        {side: _bay_windows(length - 8.0, 8.0, chapel_window)}, "wood"))  # fmt: skip
-        b.add(box((min(c0, c1) - 0.3, _Y_FRONT + 4.7, 14.0), (max(c0, c1) + 0.3, _Y_BACK - 2.7, 14.7), "stone"))
+        b.add(
+            box_walls(
+                c0,
+                _Y_FRONT + 5.0,
+                c1,
+                _Y_BACK - 3.0,
+                0.0,
+                14.0,
+                1.0,
+                "tezontle",
+                {side: _bay_windows(length - 8.0, 8.0, chapel_window)},
+                "wood",
+            )
+        )
+        b.add(
+            box((min(c0, c1) - 0.3, _Y_FRONT + 4.7, 14.0), (max(c0, c1) + 0.3, _Y_BACK - 2.7, 14.7), "stone")
+        )
         # Parapet along the chapel roof edge (leaves a shallow roof terrace behind it).
         edge = c1 if sx > 0 else c0
-        b.add(box((edge - 0.4 * (sx > 0), _Y_FRONT + 5.0, 14.7), (edge + 0.4 * (sx < 0), _Y_BACK - 3.0, 15.8), "stone"))
+        b.add(
+            box(
+                (edge - 0.4 * (sx > 0), _Y_FRONT + 5.0, 14.7),
+                (edge + 0.4 * (sx < 0), _Y_BACK - 3.0, 15.8),
+                "stone",
+            )
+        )
         cc = 0.5 * (c0 + c1)
         for k in range(int((length - 8.0) // 8.0)):
             y = _Y_FRONT + 9.0 + 8.0 * k
@@ -103,8 +142,20 @@ def _body(b: Builder) -> None:
             lo2 = (edge, y - 0.5, 10.0) if sx > 0 else (edge - 1.0, y - 0.5, 10.0)
             b.add(box(lo2, (lo2[0] + 1.0, y + 0.5, 13.5), "stone"))
     # Altar of the Kings: a lower apse block at the north end.
-    b.add(box_walls(-9.0, _Y_BACK, 9.0, _Y_BACK + 5.0, 0.0, 20.0, 1.0, "tezontle",
-                    {"north": [dict(width=2.5, sill=8.0, spring=12.0, depth=0.8, arch=True, x=7.75)]}, "wood"))  # fmt: skip
+    b.add(
+        box_walls(
+            -9.0,
+            _Y_BACK,
+            9.0,
+            _Y_BACK + 5.0,
+            0.0,
+            20.0,
+            1.0,
+            "tezontle",
+            {"north": [dict(width=2.5, sill=8.0, spring=12.0, depth=0.8, arch=True, x=7.75)]},
+            "wood",
+        )
+    )
     b.add(box((-9.3, _Y_BACK - 0.3, 20.0), (9.3, _Y_BACK + 5.3, 20.8), "stone"))
 
 
@@ -137,7 +188,11 @@ def _facade(b: Builder) -> None:
     ]
     lower = 12.5
     b.add(box_walls(-0.5 * width, y0, 0.5 * width, y1, 0.0, lower, 3.0, "stone", {"south": portals}, "wood"))
-    b.add(box_walls(-0.5 * width, y0, 0.5 * width, y1, lower, height - lower, 3.0, "stone", {"south": windows}, "wood"))
+    b.add(
+        box_walls(
+            -0.5 * width, y0, 0.5 * width, y1, lower, height - lower, 3.0, "stone", {"south": windows}, "wood"
+        )
+    )
     # Pilasters (0.5 m proud) between the portals, on two storeys.
     for x in (-12.8, -6.8, 6.8, 12.8):
         b.add(box((x - 0.6, y0 - 0.5, 0.0), (x + 0.6, y0, 11.5), "stone"))
@@ -146,10 +201,25 @@ def _facade(b: Builder) -> None:
     for z, proud in ((11.5, 0.9), (23.0, 0.8), (height, 0.7)):
         b.add(box((-0.5 * width - 0.2, y0 - proud, z), (0.5 * width + 0.2, y1, z + 1.0), "stone"))
     # Attic with a clock niche and a triangular pediment above the central portal.
-    b.add(box_walls(-6.0, y0 + 0.5, 6.0, y1, height + 1.0, 5.0, 1.5, "stone",
-                    {"south": [dict(width=2.2, sill=1.0, spring=3.0, depth=0.6, arch=True, x=4.9)]}, "wood"))  # fmt: skip
+    b.add(
+        box_walls(
+            -6.0,
+            y0 + 0.5,
+            6.0,
+            y1,
+            height + 1.0,
+            5.0,
+            1.5,
+            "stone",
+            {"south": [dict(width=2.2, sill=1.0, spring=3.0, depth=0.6, arch=True, x=4.9)]},
+            "wood",
+        )
+    )
     ped = np.array([[-4.0, 0.0], [4.0, 0.0], [0.0, 2.5]])
-    pediment = loft([(np.column_stack([ped[:, 0], ped[:, 1]]), 0.0), (np.column_stack([ped[:, 0], ped[:, 1]]), 0.6)], "stone")
+    pediment = loft(
+        [(np.column_stack([ped[:, 0], ped[:, 1]]), 0.0), (np.column_stack([ped[:, 0], ped[:, 1]]), 0.6)],
+        "stone",
+    )
     # The pediment is a triangular prism in the x-z plane: swap y and z of the lofted prism.
     v = pediment.vertices[:, [0, 2, 1]].copy()
     v[:, 1] = y0 - 0.6 + v[:, 1]
@@ -176,21 +246,42 @@ def _tower(b: Builder, sx: int, top: float) -> None:
     s0, s1, z_stage = (x0 + 1.5, x1 - 1.5), (y0 + 1.5, y1 - 1.5), body_h + 0.8
     stage_h = 0.27 * (top - z_stage) + 7.0
     opening = dict(width=3.4, sill=1.5, spring=stage_h - 4.0, depth=1.6, arch=True, x=3.3)
-    b.add(box_walls(s0[0], s1[0], s0[1], s1[1], z_stage, stage_h, 2.0, "stone",
-                    {s: [opening] for s in ("north", "south", "east", "west")}, "wood"))  # fmt: skip
+    b.add(
+        box_walls(
+            s0[0],
+            s1[0],
+            s0[1],
+            s1[1],
+            z_stage,
+            stage_h,
+            2.0,
+            "stone",
+            {s: [opening] for s in ("north", "south", "east", "west")},
+            "wood",
+        )
+    )
     z_cap = z_stage + stage_h
     b.add(box((s0[0] - 0.6, s1[0] - 0.6, z_cap), (s0[1] + 0.6, s1[1] + 0.6, z_cap + 0.8), "stone"))
     # Bell-shaped cap on a square plan (convex loft of shrinking squares), then a lantern and a cross.
     cxy = np.array([0.5 * (x0 + x1), 0.5 * (y0 + y1)])
     half = 0.5 * (s0[1] - s0[0]) - 0.3
     cap_h = 0.55 * (top - z_cap - 0.8)
-    rings = [(rect(-half * np.cos(a), -half * np.cos(a), half * np.cos(a), half * np.cos(a)) * 1.0 + cxy,
-              z_cap + 0.8 + cap_h * np.sin(a)) for a in np.linspace(0, np.pi / 2 * 0.85, 8)]  # fmt: skip
+    rings = [
+        (
+            rect(-half * np.cos(a), -half * np.cos(a), half * np.cos(a), half * np.cos(a)) * 1.0 + cxy,
+            z_cap + 0.8 + cap_h * np.sin(a),
+        )
+        for a in np.linspace(0, np.pi / 2 * 0.85, 8)
+    ]
     b.add(loft(rings, "stone", mapping="box"))
     z_l = rings[-1][1]
     lantern_h = 0.45 * (top - z_l)
     b.add(cylinder(1.0, z_l - 0.2, z_l + lantern_h, "stone", n=12).placed(0.0, (cxy[0], cxy[1], 0.0)))
-    b.add(revolve(dome_profile(1.2, z_l + lantern_h, 0.8, steps=4), "stone", n=12).placed(0.0, (cxy[0], cxy[1], 0.0)))
+    b.add(
+        revolve(dome_profile(1.2, z_l + lantern_h, 0.8, steps=4), "stone", n=12).placed(
+            0.0, (cxy[0], cxy[1], 0.0)
+        )
+    )
     z_cross = z_l + lantern_h + 0.7
     t = 0.15
     b.add(box((cxy[0] - t, cxy[1] - t, z_cross), (cxy[0] + t, cxy[1] + t, top), "stone"))

@@ -56,8 +56,20 @@ def build_church(cfg: Mapping, cache_dir=None) -> Scene:
 
     # Core: windows in the parts of its walls that the arms do not cover.
     core_windows = [dict(_WINDOW, x=1.8), dict(_WINDOW, x=16.8), dict(_HIGH_WINDOW, x=9.4)]
-    b.add(box_walls(-10, -10, 10, 10, 0.6, core_h - 0.6, 1.0, "plaster", {s: core_windows for s in
-                    ("north", "south", "east", "west")}, back_material="wood"))  # fmt: skip
+    b.add(
+        box_walls(
+            -10,
+            -10,
+            10,
+            10,
+            0.6,
+            core_h - 0.6,
+            1.0,
+            "plaster",
+            {s: core_windows for s in ("north", "south", "east", "west")},
+            back_material="wood",
+        )
+    )
     b.add(hip_roof(-10.6, -10.6, 10.6, 10.6, core_h, 2.0, "roof", top_rect=_square(6.0)))
 
     # Arms: (x0, y0, x1, y1, roof axis angle, portal side).
@@ -72,7 +84,9 @@ def build_church(cfg: Mapping, cache_dir=None) -> Scene:
         portal = dict(width=3.0, sill=0.0, spring=4.5, depth=0.9, arch=True, x=3.5)
         flank = [dict(_HIGH_WINDOW, x=x, sill=7.0, spring=9.5) for x in (1.3, 7.5)]
         end_openings = [portal, *flank] if end != "east" else []
-        side_window = [dict(_WINDOW, x=2.0, width=1.2) if (x1 - x0 if angle == 0 else y1 - y0) > 5.5 else None]
+        side_window = [
+            dict(_WINDOW, x=2.0, width=1.2) if (x1 - x0 if angle == 0 else y1 - y0) > 5.5 else None
+        ]
         openings = {end: end_openings}
         for side in ("north", "south") if angle == 0 else ("east", "west"):
             openings[side] = [o for o in side_window if o is not None]
@@ -83,20 +97,39 @@ def build_church(cfg: Mapping, cache_dir=None) -> Scene:
         inward = -np.sign(center[0] if angle == 0 else center[1])
         roof = gable_roof(length + 2.5, width + 1.0, arm_h, 3.6, "roof")
         shift = np.array([inward * 1.0, 0.0, 0.0]) if angle == 0 else np.array([0.0, inward * 1.0, 0.0])
-        b.add(roof.placed(angle, np.asarray(center) + shift + (0.25 * -inward * (angle == 0), 0.25 * -inward * (angle != 0), 0)))
+        b.add(
+            roof.placed(
+                angle,
+                np.asarray(center)
+                + shift
+                + (0.25 * -inward * (angle == 0), 0.25 * -inward * (angle != 0), 0),
+            )
+        )
 
     # Apses on the east: half-cylinders with half-domes, blind arcading as shallow pilasters.
     for cy, radius, height in ((0.0, 4.5, 11.0), (-7.5, 2.5, 9.0), (7.5, 2.5, 9.0)):
         x_base = 15.0 if cy == 0.0 else 10.0
         wall = _half_disc(radius, 16)
         b.add(loft([(wall, 0.6), (wall, height)], "plaster", mapping="cyl").placed(0.0, (x_base, cy, 0.0)))
-        b.add(loft([(_half_disc(radius + 0.3, 16), 0.0), (_half_disc(radius + 0.3, 16), 0.6)], "brick",
-                   mapping="cyl").placed(0.0, (x_base, cy, 0.0)))  # fmt: skip
-        rings = [(_half_disc(radius * np.cos(a) + 0.25, 16), height + radius * np.sin(a)) for a in np.linspace(0, np.pi / 2 * 0.98, 7)]
+        b.add(
+            loft(
+                [(_half_disc(radius + 0.3, 16), 0.0), (_half_disc(radius + 0.3, 16), 0.6)],
+                "brick",
+                mapping="cyl",
+            ).placed(0.0, (x_base, cy, 0.0))
+        )
+        rings = [
+            (_half_disc(radius * np.cos(a) + 0.25, 16), height + radius * np.sin(a))
+            for a in np.linspace(0, np.pi / 2 * 0.98, 7)
+        ]
         b.add(loft(rings, "roof", mapping="box").placed(0.0, (x_base, cy, 0.0)))
         for a in np.linspace(-np.pi / 2 * 0.75, np.pi / 2 * 0.75, 5):
             px, py = (radius + 0.1) * np.cos(a), (radius + 0.1) * np.sin(a)
-            b.add(box((-0.15, -0.3, 0.6), (0.15, 0.3, height - 0.4), "plaster").placed(a, (x_base + px, cy + py, 0.0)))
+            b.add(
+                box((-0.15, -0.3, 0.6), (0.15, 0.3, height - 0.4), "plaster").placed(
+                    a, (x_base + px, cy + py, 0.0)
+                )
+            )
 
     # Central drum, onion dome, cross.
     z_drum = core_h + 1.6
@@ -114,7 +147,11 @@ def build_church(cfg: Mapping, cache_dir=None) -> Scene:
             b.add(polygon_drum(2.2, 8, core_h - 0.3, 4.6, 0.6, "plaster", small_window, "wood", center=c))
             top = core_h - 0.3 + 4.6
             b.add(polygon_prism(2.45, 8, top, top + 0.35, "brick", center=c))
-            b.add(revolve(dome_profile(2.4, top + 0.35, 2.8, steps=8), "roof", n=24).placed(0.0, (c[0], c[1], 0.0)))
+            b.add(
+                revolve(dome_profile(2.4, top + 0.35, 2.8, steps=8), "roof", n=24).placed(
+                    0.0, (c[0], c[1], 0.0)
+                )
+            )
             _cross(b, c, top + 0.35 + 2.8 - 0.1, 1.6, "gold")
 
     info = {"model": "Cross-plan Orthodox church after St Sophia, simplified", "core_m": 20.0}
@@ -136,5 +173,17 @@ def _cross(b: Builder, xy, z0: float, height: float, material: str) -> None:
     x, y = xy
     t = 0.08 * height / 3.0 + 0.05
     b.add(box((x - t, y - t, z0), (x + t, y + t, z0 + height), material))
-    b.add(box((x - t, y - 0.3 * height, z0 + 0.62 * height), (x + t, y + 0.3 * height, z0 + 0.62 * height + 2 * t), material))
-    b.add(box((x - t, y - 0.18 * height, z0 + 0.82 * height), (x + t, y + 0.18 * height, z0 + 0.82 * height + 2 * t), material))
+    b.add(
+        box(
+            (x - t, y - 0.3 * height, z0 + 0.62 * height),
+            (x + t, y + 0.3 * height, z0 + 0.62 * height + 2 * t),
+            material,
+        )
+    )
+    b.add(
+        box(
+            (x - t, y - 0.18 * height, z0 + 0.82 * height),
+            (x + t, y + 0.18 * height, z0 + 0.82 * height + 2 * t),
+            material,
+        )
+    )

@@ -45,7 +45,9 @@ def box_walls(
         wall = arched_wall(length, height, thickness, openings.get(side, ()), material, back_material)
         pieces += place(wall, angle, origin)
     if core and min(lx, ly) > 2 * thickness + 1e-6:
-        pieces.append(box((x0 + thickness, y0 + thickness, z0), (x1 - thickness, y1 - thickness, z0 + height), material))
+        pieces.append(
+            box((x0 + thickness, y0 + thickness, z0), (x1 - thickness, y1 - thickness, z0 + height), material)
+        )
     return pieces
 
 
@@ -93,7 +95,9 @@ def _regular(circumradius: float, n: int) -> np.ndarray:
     return circumradius * np.column_stack([np.cos(a), np.sin(a)])
 
 
-def polygon_prism(radius: float, n_sides: int, z0: float, z1: float, material: str, center=(0.0, 0.0)) -> Piece:
+def polygon_prism(
+    radius: float, n_sides: int, z0: float, z1: float, material: str, center=(0.0, 0.0)
+) -> Piece:
     """Solid regular prism with apothem ``radius`` whose sides face the angles 2 pi k / n (metres)."""
     ring = _regular(radius / np.cos(np.pi / n_sides), n_sides) + np.asarray(center, float)
     return loft([(ring, z0), (ring, z1)], material, mapping="cyl")
@@ -137,7 +141,7 @@ def finish_scene(
         structure.lo_array[:2] - margin,
         structure.hi_array[:2] + margin,
         ground_material,
-        tile_m=0.5 * period,
+        tile_m=period,
         cell_m=float(cfg.get("ground_cell_m", 1.0)),
     )
     parts = builder.build(ground=tiles)
@@ -157,7 +161,10 @@ def finish_scene(
         n_faces=n_faces,
         n_vertices=sum(len(p.vertices) for p in parts),
         texture_bytes=int(sum(t.nbytes for t in textures.values())),
-        textures={m.key: {"preset": m.preset, "texel_m": m.texel_m, "size": m.size} for m in builder.materials.values()},
+        textures={
+            m.key: {"preset": m.preset, "texel_m": m.texel_m, "size": m.size}
+            for m in builder.materials.values()
+        },
         footprint_m=[float(v) for v in structure.extent[:2]],
         height_m=float(structure.hi[2]),
         build_seconds=round(time.perf_counter() - started, 3),

@@ -56,7 +56,13 @@ class Piece:
         t = np.asarray(self.translation, float)
         t = np.array([c * t[0] - s * t[1], s * t[0] + c * t[1], t[2]]) + np.asarray(translation, float)
         return Piece(
-            self.vertices, self.faces, self.material, self.mapping, self.convex, self.rotation_z + rotation_z, t
+            self.vertices,
+            self.faces,
+            self.material,
+            self.mapping,
+            self.convex,
+            self.rotation_z + rotation_z,
+            t,
         )
 
     def world_vertices(self, local: np.ndarray | None = None) -> np.ndarray:
@@ -95,7 +101,9 @@ def box(lo, hi, material: str, mapping: str = "box") -> Piece:
     return Piece(vertices, faces, material, mapping)
 
 
-def loft(rings: Sequence[tuple[np.ndarray, float]], material: str, mapping: str = "planar", convex=True) -> Piece:
+def loft(
+    rings: Sequence[tuple[np.ndarray, float]], material: str, mapping: str = "planar", convex=True
+) -> Piece:
     """A closed solid through horizontal rings [(polygon (K, 2) counter-clockwise, z), ...].
 
     All rings have the same K vertices; consecutive rings are joined by quads, the first and last
@@ -106,7 +114,9 @@ def loft(rings: Sequence[tuple[np.ndarray, float]], material: str, mapping: str 
     k = len(polys[0])
     if any(len(p) != k for p in polys) or len(polys) < 2:
         raise ValueError("loft needs at least two rings with the same vertex count")
-    vertices = np.concatenate([np.column_stack([p, np.full(k, z)]) for p, (_, z) in zip(polys, rings, strict=True)])
+    vertices = np.concatenate(
+        [np.column_stack([p, np.full(k, z)]) for p, (_, z) in zip(polys, rings, strict=True)]
+    )
     faces = []
     i = np.arange(k)
     j = (i + 1) % k
@@ -117,7 +127,9 @@ def loft(rings: Sequence[tuple[np.ndarray, float]], material: str, mapping: str 
         faces.append(np.column_stack([a, c, d]))
     bottom = np.column_stack([np.zeros(k - 2, int), np.arange(2, k), np.arange(1, k - 1)])
     top_base = (len(polys) - 1) * k
-    top = np.column_stack([np.full(k - 2, top_base), top_base + np.arange(1, k - 1), top_base + np.arange(2, k)])
+    top = np.column_stack(
+        [np.full(k - 2, top_base), top_base + np.arange(1, k - 1), top_base + np.arange(2, k)]
+    )
     faces = np.concatenate(faces + [bottom, top])
     tri = vertices[faces]
     area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
@@ -135,11 +147,13 @@ def rect(x0: float, y0: float, x1: float, y1: float) -> np.ndarray:
     return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], float)
 
 
-def cylinder(radius: float, z0: float, z1: float, material: str, n: int = 24, radius_top: float | None = None) -> Piece:
+def cylinder(
+    radius: float, z0: float, z1: float, material: str, n: int = 24, radius_top: float | None = None
+) -> Piece:
     """Vertical cylinder or cone frustum about the local z axis (cylindrical UVs)."""
     rt = radius if radius_top is None else radius_top
     return loft(
-        [(regular_polygon(radius, n), z0), (regular_polygon(max(rt, 1e-4), n), z1)], material, mapping="cyl"
+        [(regular_polygon(radius, n), z0), (regular_polygon(max(rt, 0.0), n), z1)], material, mapping="cyl"
     )
 
 
@@ -148,7 +162,7 @@ def revolve(profile: Sequence[tuple[float, float]], material: str, n: int = 32, 
 
     The last radius may be 0 (apex). Box UV projection keeps texel size uniform on a dome.
     """
-    rings = [(regular_polygon(max(r, 1e-4), n), z) for r, z in profile]
+    rings = [(regular_polygon(max(r, 0.0), n), z) for r, z in profile]
     return loft(rings, material, mapping="box", convex=convex)
 
 
@@ -168,9 +182,17 @@ def onion_profile(radius: float, z0: float, height: float, steps: int = 14) -> l
 
 
 def hip_roof(
-    x0: float, y0: float, x1: float, y1: float, z_eave: float, height: float, material: str,
-    fascia: float = 0.25, ridge_fraction: float = 0.4, top_rect: np.ndarray | None = None,
-) -> Piece:  # fmt: skip
+    x0: float,
+    y0: float,
+    x1: float,
+    y1: float,
+    z_eave: float,
+    height: float,
+    material: str,
+    fascia: float = 0.25,
+    ridge_fraction: float = 0.4,
+    top_rect: np.ndarray | None = None,
+) -> Piece:
     """Hipped roof solid: a vertical fascia band of ``fascia`` m at the eave, then slopes to a ridge.
 
     The ridge runs along the longer side and is ``ridge_fraction`` of it (0: pyramid); or the slopes
@@ -191,7 +213,9 @@ def hip_roof(
     return loft([(outer, z_eave), (outer, z_eave + fascia), (top, z_eave + fascia + height)], material)
 
 
-def gable_roof(length: float, width: float, z_eave: float, height: float, material: str, fascia: float = 0.2) -> Piece:
+def gable_roof(
+    length: float, width: float, z_eave: float, height: float, material: str, fascia: float = 0.2
+) -> Piece:
     """Gable roof solid along local x from -length/2..length/2, width across y, ridge at the centre."""
     hl, hw = 0.5 * length, 0.5 * width
     # Profile in the (y, z) plane, extruded along x: a pentagon (fascia band + triangle).
@@ -346,7 +370,9 @@ class Builder:
         """Add one piece or a list of pieces (world placement already applied)."""
         for p in [pieces] if isinstance(pieces, Piece) else pieces:
             if p.material not in self.materials:
-                raise ValueError(f"piece uses unknown material {p.material!r}; known: {sorted(self.materials)}")
+                raise ValueError(
+                    f"piece uses unknown material {p.material!r}; known: {sorted(self.materials)}"
+                )
             if p.mapping not in MAPPINGS:
                 raise ValueError(f"unknown UV mapping {p.mapping!r}; known: {MAPPINGS}")
             self.pieces.append(p)
@@ -360,31 +386,39 @@ class Builder:
         rng = np.random.default_rng(self.seed)
         occluders = [_halfspaces(p) for p in self.pieces if p.convex]
         occ_boxes = np.array([o[2] for o in occluders]) if occluders else np.zeros((0, 2, 3))
-        per_material: dict[str, list] = {}
         all_pieces = [(p, False) for p in self.pieces] + [(p, True) for p in ground]
+        local, world, faces, face_piece, below = [], [], [], [], []
+        n_vertices = 0
         for index, (piece, is_ground) in enumerate(all_pieces):
-            local_v, faces = trimesh.remesh.subdivide_to_size(piece.vertices, piece.faces, self.max_edge_m, 12)
-            world_v = piece.world_vertices(local_v)
-            keep = _visible_faces(world_v, faces, occluders, occ_boxes, below_ground=not is_ground)
-            if not keep.any():
-                continue
-            faces = faces[keep]
-            mat = self.materials[piece.material]
-            corner_uv = _corner_uv(local_v, faces, piece.mapping, mat.texel_m * mat.size, rng, index)
-            v, f, uv = _split_by_uv(world_v, faces, corner_uv)
-            per_material.setdefault(piece.material, []).append((v, f, uv))
+            local_v, f = trimesh.remesh.subdivide_to_size(piece.vertices, piece.faces, self.max_edge_m, 12)
+            local.append(local_v)
+            world.append(piece.world_vertices(local_v))
+            faces.append(f + n_vertices)
+            face_piece.append(np.full(len(f), index))
+            below.append(np.full(len(f), not is_ground))
+            n_vertices += len(local_v)
+        local_v, world_v = np.concatenate(local), np.concatenate(world)
+        faces, face_piece = np.concatenate(faces), np.concatenate(face_piece)
+        keep = _visible_faces(world_v, faces, occluders, occ_boxes, below_ground=np.concatenate(below))
+        faces, face_piece = faces[keep], face_piece[keep]
+        # Pieces in order, each with its own UV projection and random offsets.
+        order = np.argsort(face_piece, kind="stable")
+        faces, face_piece = faces[order], face_piece[order]
+        bounds = np.searchsorted(face_piece, np.arange(len(all_pieces) + 1))
+        corner_uv = np.empty(faces.shape + (2,))
+        for index, (piece, _) in enumerate(all_pieces):
+            a, b = bounds[index], bounds[index + 1]
+            if b > a:
+                mat = self.materials[piece.material]
+                period = mat.texel_m * mat.size
+                corner_uv[a:b] = _corner_uv(local_v, faces[a:b], piece.mapping, period, rng, index)
+        material_of_piece = np.array([p.material for p, _ in all_pieces])
+        face_material = material_of_piece[face_piece]
         parts = []
-        for key, chunks in per_material.items():
-            offsets = np.cumsum([0] + [len(c[0]) for c in chunks[:-1]])
-            parts.append(
-                MeshPart(
-                    name=key,
-                    vertices=np.concatenate([c[0] for c in chunks]),
-                    faces=np.concatenate([c[1] + o for c, o in zip(chunks, offsets, strict=True)]),
-                    uv=np.concatenate([c[2] for c in chunks]),
-                    texture=key,
-                )
-            )
+        for key in dict.fromkeys(material_of_piece[face_piece]):
+            sel = face_material == key
+            v, f, uv = _split_by_uv(world_v, faces[sel], corner_uv[sel])
+            parts.append(MeshPart(name=str(key), vertices=v, faces=f, uv=uv, texture=str(key)))
         return parts
 
 
@@ -426,7 +460,7 @@ def _halfspaces(piece: Piece) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return plane[:, :3], plane[:, 3], np.stack([v.min(0), v.max(0)])
 
 
-def _visible_faces(vertices, faces, occluders, occ_boxes, below_ground: bool, eps: float = 2e-3) -> np.ndarray:
+def _visible_faces(vertices, faces, occluders, occ_boxes, below_ground, eps: float = 2e-3) -> np.ndarray:
     """Mask of faces not hidden: a face is hidden when its centroid and three points near its corners,
     each pushed ``eps`` m outwards, all lie inside convex occluders (or below z = 0). Faces only
     partly covered are kept, so the rendering never shows a hole."""
@@ -438,14 +472,35 @@ def _visible_faces(vertices, faces, occluders, occ_boxes, below_ground: bool, ep
     probes = np.concatenate([centroid, 0.9 * tri + 0.1 * centroid], axis=1) + eps * n[:, None, :]
     probes = probes.reshape(-1, 3)
     hidden = np.zeros(len(probes), bool)
-    if below_ground:
-        hidden |= probes[:, 2] <= 0.0
+    below = np.broadcast_to(np.asarray(below_ground, bool), (len(faces),))
+    hidden |= np.repeat(below, 4) & (probes[:, 2] <= 0.0)
     if len(occ_boxes):
         lo, hi = probes.min(0), probes.max(0)
         near = np.all((occ_boxes[:, 0] <= hi) & (occ_boxes[:, 1] >= lo), axis=1)
+        # Bin probes on a 2 m grid in xy, sorted by cell, so each occluder reads only its cells.
+        cell = 2.0
+        ij = np.floor((probes[:, :2] - lo[:2]) / cell).astype(np.int64)
+        ny = int(ij[:, 1].max()) + 1
+        key = ij[:, 0] * ny + ij[:, 1]
+        order = np.argsort(key, kind="stable")
+        sorted_key = key[order]
         for k in np.flatnonzero(near):
             normals, offsets, aabb = occluders[k]
-            cand = np.flatnonzero(~hidden & np.all((probes >= aabb[0]) & (probes <= aabb[1]), axis=1))
+            c0 = np.floor((aabb[0, :2] - lo[:2]) / cell).astype(np.int64)
+            c1 = np.floor((aabb[1, :2] - lo[:2]) / cell).astype(np.int64)
+            c0, c1 = np.maximum(c0, 0), np.minimum(c1, [int(ij[:, 0].max()), ny - 1])
+            rows = np.arange(c0[0], c1[0] + 1) * ny
+            starts = np.searchsorted(sorted_key, rows + c0[1], side="left")
+            ends = np.searchsorted(sorted_key, rows + c1[1], side="right")
+            if len(starts) == 1:
+                cand = order[starts[0] : ends[0]]
+            else:
+                cand = np.concatenate([order[a:b] for a, b in zip(starts, ends, strict=True)])
+            cand = cand[~hidden[cand]]
+            if len(cand) == 0:
+                continue
+            pc = probes[cand]
+            cand = cand[np.all((pc >= aabb[0]) & (pc <= aabb[1]), axis=1)]
             if len(cand) == 0:
                 continue
             inside = np.all(probes[cand] @ normals.T - offsets < 0.0, axis=1)

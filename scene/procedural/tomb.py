@@ -102,7 +102,9 @@ def _gate(b: Builder, y_wall: float) -> None:
     """Three-bay gate (tam quan) spanning x in [-3, 3] in the south wall, with a tiled hip roof."""
     for x_lo, width, height in ((-3.0, 0.8, 4.6), (2.2, 0.8, 4.6), (-1.2, 0.5, 4.0), (0.7, 0.5, 4.0)):
         b.add(box((x_lo, y_wall - 0.1, 0.0), (x_lo + width, y_wall + 0.7, height), "stone"))
-        b.add(box((x_lo - 0.1, y_wall - 0.2, height), (x_lo + width + 0.1, y_wall + 0.8, height + 0.2), "stone"))
+        b.add(
+            box((x_lo - 0.1, y_wall - 0.2, height), (x_lo + width + 0.1, y_wall + 0.8, height + 0.2), "stone")
+        )
     b.add(box((-3.0, y_wall - 0.05, 3.4), (3.0, y_wall + 0.65, 4.0), "wood"))
     b.add(hip_roof(-3.9, y_wall - 0.9, 3.9, y_wall + 1.5, 4.0, 1.3, "roof", fascia=0.2, ridge_fraction=0.5))
     b.add(box((-1.6, y_wall + 0.15, 5.45), (1.6, y_wall + 0.45, 5.75), "roof"))
@@ -131,20 +133,38 @@ def _pavilion(b: Builder, center) -> None:
         "east": [dict(window, x=1.9)],
         "west": [dict(window, x=1.9)],
     }
-    b.add(box_walls(cx - hx, cy - hy, cx + hx, cy + hy, z0, wall_h, 0.6, "plaster", openings, back_material="wood"))
+    b.add(
+        box_walls(
+            cx - hx, cy - hy, cx + hx, cy + hy, z0, wall_h, 0.6, "plaster", openings, back_material="wood"
+        )
+    )
 
     # Colonnade 1.4 m outside the hall, carrying a beam under the lower eave.
     col_x, col_y, col_top = hx + 1.4, hy + 1.4, z0 + 4.0
     xs = np.linspace(-col_x, col_x, 7)
     ys = np.linspace(-col_y, col_y, 4)
-    positions = [(x, y) for x in xs for y in (-col_y, col_y)] + [(x, y) for x in (-col_x, col_x) for y in ys[1:-1]]
+    positions = [(x, y) for x in xs for y in (-col_y, col_y)] + [
+        (x, y) for x in (-col_x, col_x) for y in ys[1:-1]
+    ]
     for x, y in positions:
         b.add(box((cx + x - 0.3, cy + y - 0.3, z0), (cx + x + 0.3, cy + y + 0.3, z0 + 0.25), "stone"))
         b.add(cylinder(0.2, z0 + 0.25, col_top, "wood", n=16).placed(0.0, (cx + x, cy + y, 0.0)))
     for y in (-col_y, col_y):
-        b.add(box((cx - col_x - 0.15, cy + y - 0.15, col_top - 0.35), (cx + col_x + 0.15, cy + y + 0.15, col_top), "wood"))
+        b.add(
+            box(
+                (cx - col_x - 0.15, cy + y - 0.15, col_top - 0.35),
+                (cx + col_x + 0.15, cy + y + 0.15, col_top),
+                "wood",
+            )
+        )
     for x in (-col_x, col_x):
-        b.add(box((cx + x - 0.15, cy - col_y - 0.15, col_top - 0.35), (cx + x + 0.15, cy + col_y + 0.15, col_top), "wood"))
+        b.add(
+            box(
+                (cx + x - 0.15, cy - col_y - 0.15, col_top - 0.35),
+                (cx + x + 0.15, cy + col_y + 0.15, col_top),
+                "wood",
+            )
+        )
     # Tie beams from the colonnade to the hall (visible only from below the eaves).
     for x in xs[1:-1]:
         for sy in (-1, 1):
@@ -154,26 +174,58 @@ def _pavilion(b: Builder, center) -> None:
     # Lower roof: deep eaves (1.5 m beyond the columns), slopes up to the upper storey.
     eave_x, eave_y, z_eave = col_x + 1.5, col_y + 1.5, col_top
     up_x, up_y = hx - 1.0, hy - 0.5
-    top = np.array([[cx - up_x, cy - up_y], [cx + up_x, cy - up_y], [cx + up_x, cy + up_y], [cx - up_x, cy + up_y]])
+    top = np.array(
+        [[cx - up_x, cy - up_y], [cx + up_x, cy - up_y], [cx + up_x, cy + up_y], [cx - up_x, cy + up_y]]
+    )
     b.add(hip_roof(cx - eave_x, cy - eave_y, cx + eave_x, cy + eave_y, z_eave, 1.6, "roof", top_rect=top))
     # Upper storey (clerestory) with small recessed windows, then the upper roof.
     z_up, up_h = z_eave, 3.3
     clerestory = {
         side: [dict(width=0.8, sill=2.2, spring=2.8, depth=0.15, arch=False, x=x) for x in xs_]
-        for side, xs_ in (("south", (1.5, 3.6, 5.7)), ("north", (1.5, 3.6, 5.7)), ("east", (1.6,)), ("west", (1.6,)))
+        for side, xs_ in (
+            ("south", (1.5, 3.6, 5.7)),
+            ("north", (1.5, 3.6, 5.7)),
+            ("east", (1.6,)),
+            ("west", (1.6,)),
+        )
     }
-    b.add(box_walls(cx - up_x, cy - up_y, cx + up_x, cy + up_y, z_up, up_h, 0.4, "plaster", clerestory, "wood"))
+    b.add(
+        box_walls(cx - up_x, cy - up_y, cx + up_x, cy + up_y, z_up, up_h, 0.4, "plaster", clerestory, "wood")
+    )
     z_eave2 = z_up + up_h
-    b.add(hip_roof(cx - up_x - 1.2, cy - up_y - 1.2, cx + up_x + 1.2, cy + up_y + 1.2, z_eave2, 2.3, "roof",
-                   ridge_fraction=0.45))  # fmt: skip
+    b.add(
+        hip_roof(
+            cx - up_x - 1.2,
+            cy - up_y - 1.2,
+            cx + up_x + 1.2,
+            cy + up_y + 1.2,
+            z_eave2,
+            2.3,
+            "roof",
+            ridge_fraction=0.45,
+        )
+    )
     ridge_z = z_eave2 + 0.25 + 2.3
     ridge_half = 0.45 * (up_x + 1.2)
-    b.add(box((cx - ridge_half - 0.3, cy - 0.18, ridge_z - 0.15), (cx + ridge_half + 0.3, cy + 0.18, ridge_z + 0.35), "roof"))
+    b.add(
+        box(
+            (cx - ridge_half - 0.3, cy - 0.18, ridge_z - 0.15),
+            (cx + ridge_half + 0.3, cy + 0.18, ridge_z + 0.35),
+            "roof",
+        )
+    )
     for sx in (-1, 1):  # upturned ridge-end ornaments
-        b.add(cylinder(0.22, ridge_z + 0.35, ridge_z + 1.1, "roof", n=12, radius_top=0.05).placed(
-            0.0, (cx + sx * (ridge_half + 0.1), cy, 0.0)))  # fmt: skip
+        b.add(
+            cylinder(0.22, ridge_z + 0.35, ridge_z + 1.1, "roof", n=12, radius_top=0.05).placed(
+                0.0, (cx + sx * (ridge_half + 0.1), cy, 0.0)
+            )
+        )
     gourd = [(0.35, 0.0), (0.45, 0.25), (0.3, 0.5), (0.18, 0.62), (0.3, 0.8), (0.25, 1.0), (0.0, 1.3)]
-    b.add(revolve([(r, ridge_z + 0.35 + z) for r, z in gourd], "stone", n=16, convex=False).placed(0.0, (cx, cy, 0.0)))
+    b.add(
+        revolve([(r, ridge_z + 0.35 + z) for r, z in gourd], "stone", n=16, convex=False).placed(
+            0.0, (cx, cy, 0.0)
+        )
+    )
 
 
 def _stele_pavilion(b: Builder, center) -> None:
@@ -189,7 +241,11 @@ def _stele_pavilion(b: Builder, center) -> None:
     for sx in (-1, 1):
         b.add(box((cx + sx * 2.5 - 0.2, cy - 2.8, 3.6), (cx + sx * 2.5 + 0.2, cy + 2.8, 4.0), "wood"))
     b.add(hip_roof(cx - 3.9, cy - 3.9, cx + 3.9, cy + 3.9, 4.0, 2.2, "roof", ridge_fraction=0.0))
-    b.add(revolve(dome_profile(0.3, 4.0 + 0.25 + 2.2 - 0.1, 0.5, steps=4), "stone", n=12).placed(0.0, (cx, cy, 0.0)))
+    b.add(
+        revolve(dome_profile(0.3, 4.0 + 0.25 + 2.2 - 0.1, 0.5, steps=4), "stone", n=12).placed(
+            0.0, (cx, cy, 0.0)
+        )
+    )
     _stele(b, (cx, cy), height=3.0, base_z=0.6)
 
 

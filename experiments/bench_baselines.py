@@ -1,0 +1,117 @@
+"""Baseline planners benchmark: planning time and image count of lawnmower, smith and yan per scene.
+
+Each planner plans on the scene's degraded ground truth (``reconstruct.proxy.degraded_ground_truth``:
+the ground truth cropped to the evaluation region, decimated and noised; a stand-in for the proxy
+that needs no exploratory reconstruction) with its ``conf/planner/<name>.yaml`` settings and the
+run camera of ``conf/config.yaml``. Prints one row per (scene, planner): images, planning time, its
+largest stages, flight length and the planner's own objective or coverage figures. The machine is
+shared, so compare times within one run.
+
+    python experiments/bench_baselines.py                          # tomb church cathedral x all
+    python experiments/bench_baselines.py --scenes tomb --planners smith yan --json out.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+PLANNERS = ("lawnmower", "smith", "yan")
+SCENES = ("tomb", "church", "cathedral")
+
+
+def compose(scene: str, planner: str):
+    """The composed run config for ``scene=<scene> planner=<planner>``."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base=None):
+        return hydra_compose("config", overrides=[f"scene={scene}", f"planner={planner}"])
+
+
+def plan_record(plan, seconds: float) -> dict:
+    """The printed figures of one plan."""
+    info = plan.info
+    record = {
+        "n_images": len(plan.viewpoints),
+        "plan_time_s": seconds,
+        "flight_length_m": plan.flight_length_m,
+        "stages_s": {k: round(v, 2) for k, v in info.get("timings_s", {}).items() if k != "total"},
+    }
+    for key in ("objective_initial", "objective_final", "n_initial_views", "n_local", "n_global"):
+        if key in info:
+            record[key] = info[key]
+    for key in ("fraction_coverable_covered", "n_before_key_images", "rays_cast"):
+        if key in info:
+            record[key] = info[key]
+    if "optimisation" in info:
+        record["nm_steps"] = info["optimisation"]["steps"]
+        record["nm_rounds"] = info["optimisation"]["rounds"]
+    return record
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", nargs="+", default=list(SCENES))
+    parser.add_argument("--planners", nargs="+", default=list(PLANNERS), choices=PLANNERS)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", type=Path, default=None, help="also write the records here")
+    args = parser.parse_args(argv)
+
+    from omegaconf import OmegaConf
+
+    from reconstruct.proxy import degraded_ground_truth
+    from scene.camera import Intrinsics
+    from scene.io import write_json_atomic
+    from scene.registry import load_scene
+
+    records = []
+    for scene_name in args.scenes:
+        base = compose(scene_name, args.planners[0])
+        t0 = time.perf_counter()
+        scene = load_scene(base.scene, cache_dir=base.cache_dir)
+        proxy = degraded_ground_truth(scene, base.reconstruct, args.seed)
+        print(
+            f"\n{scene_name}: structure {scene.structure_bounds.extent.round(1).tolist()} m, proxy "
+            f"{len(proxy.faces)} faces, {proxy.area:.0f} m^2 "
+            f"(scene + proxy {time.perf_counter() - t0:.1f} s)",
+            flush=True,
+        )
+        for planner_name in args.planners:
+            cfg = compose(scene_name, planner_name)
+            intrinsics = Intrinsics(int(cfg.camera.width), int(cfg.camera.height), float(cfg.camera.hfov_deg))
+            params = OmegaConf.to_container(cfg.planner, resolve=True)
+            if "progress" in params:
+                params["progress"] = False
+            module = importlib.import_module(f"planner.{planner_name}")
+            t0 = time.perf_counter()
+            plan = module.plan(proxy, intrinsics, params, args.seed)
+            seconds = time.perf_counter() - t0
+            record = {"scene": scene_name, "planner": planner_name, **plan_record(plan, seconds)}
+            records.append(record)
+            extras = {
+                k: v for k, v in record.items() if k not in ("scene", "planner", "n_images", "plan_time_s")
+            }
+            print(
+                f"  {planner_name:9s} images {record['n_images']:5d}  plan {seconds:7.1f} s  "
+                + json.dumps(extras, default=float),
+                flush=True,
+            )
+    print("\nscene      planner    images  plan_s")
+    for r in records:
+        print(f"{r['scene']:10s} {r['planner']:9s} {r['n_images']:7d} {r['plan_time_s']:7.1f}")
+    if args.json:
+        write_json_atomic(args.json, records)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,145 @@
+"""Benchmark the reconstruction stage: per-stage wall times and peak memory for growing flights.
+
+    python experiments/bench_reconstruct.py                      # 50, 100, 200 images of the tomb
+    python experiments/bench_reconstruct.py --counts 50 100 --images DIR --out bench_out
+
+The base flight is the tomb's exploratory lawnmower at 1024x768 (rendered once into
+``OUT/base``, overlap raised until it has at least max(counts) images, or taken from ``--images``).
+Each count runs on the first N images of that flight (same density, growing area), in a fresh
+process so its peak memory is its own; the proxy stage (Poisson) is included. The machine is
+shared: the load average is printed with every row, compare ratios within one run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+STAGES = (
+    "extraction_time_s",
+    "matching_time_s",
+    "mapping_time_s",
+    "align_time_s",
+    "dense_time_s",
+    "proxy_time_s",
+)
+
+
+def render_base_flight(out_dir: Path, n_images: int) -> Path:
+    """Render the tomb's exploratory flight with at least ``n_images`` views into ``out_dir``."""
+    from omegaconf import OmegaConf
+
+    from planner.lawnmower import plan_exploration
+    from render.flight import render_flight
+    from scene.camera import Intrinsics
+    from scene.procedural.tomb import build_tomb
+
+    if (out_dir / "cameras.json").is_file():
+        if len(json.loads((out_dir / "cameras.json").read_text())["images"]) >= n_images:
+            return out_dir
+    base = OmegaConf.load(ROOT / "conf" / "config.yaml")
+    intrinsics = Intrinsics(**base.camera)
+    scene = build_tomb({}, cache_dir=ROOT / "cache" / "scenes")
+    exploration = OmegaConf.load(ROOT / "conf" / "exploration" / "lawnmower.yaml")
+    plan = plan_exploration(scene.structure_bounds, intrinsics, exploration, 0)
+    while len(plan.viewpoints) < n_images:
+        if exploration.front_overlap >= 0.95:
+            raise SystemExit(
+                f"cannot reach {n_images} images with the lawnmower (got {len(plan.viewpoints)})"
+            )
+        exploration.front_overlap = round(float(exploration.front_overlap) + 0.01, 3)
+        exploration.side_overlap = round(float(exploration.side_overlap) + 0.01, 3)
+        plan = plan_exploration(scene.structure_bounds, intrinsics, exploration, 0)
+    render = OmegaConf.load(ROOT / "conf" / "render" / "default.yaml")
+    print(f"rendering the base flight: {len(plan.viewpoints)} images (overlap {exploration.front_overlap})")
+    render_flight(scene, plan.viewpoints, intrinsics, out_dir, render, kinds=plan.kinds)
+    return out_dir
+
+
+def subset_flight(base: Path, out_dir: Path, n_images: int) -> Path:
+    """A flight of the first ``n_images`` images of ``base`` (symbolic links + a cut cameras.json)."""
+    record = json.loads((base / "cameras.json").read_text())
+    if len(record["images"]) < n_images:
+        raise SystemExit(f"{base} has {len(record['images'])} images, fewer than {n_images}")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    record["images"] = record["images"][:n_images]
+    for image in record["images"]:
+        link = out_dir / image["name"]
+        if not link.exists():
+            link.symlink_to((base / image["name"]).resolve())
+    (out_dir / "cameras.json").write_text(json.dumps(record))
+    return out_dir
+
+
+def run_one(image_dir: Path, out_dir: Path) -> dict:
+    """Reconstruct + proxy one flight in this process; return the record with peak memory (GB)."""
+    from omegaconf import OmegaConf
+
+    from reconstruct.pipeline import build_proxy
+
+    cfg = OmegaConf.load(ROOT / "conf" / "reconstruct" / "default.yaml")
+    start = time.perf_counter()
+    _, record = build_proxy(image_dir, out_dir, cfg, seed=0)
+    record["total_time_s"] = time.perf_counter() - start
+    record["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+    return record
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--counts", type=int, nargs="+", default=[50, 100, 200])
+    parser.add_argument("--images", type=Path, default=None, help="an existing rendered flight to cut")
+    parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "bench_reconstruct")
+    parser.add_argument("--one", nargs=2, type=Path, metavar=("IMAGE_DIR", "OUT_DIR"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.one:
+        print("RESULT " + json.dumps(run_one(*args.one), default=str))
+        return
+    if any(n < 3 for n in args.counts):
+        parser.error("--counts must all be at least 3")
+    base = args.images or render_base_flight(args.out / "base", max(args.counts))
+    rows = []
+    header = f"{'images':>6} {'registered':>10} " + " ".join(f"{s[:-7]:>10}" for s in STAGES)
+    header += f" {'total':>8} {'peak GB':>8} {'pos med m':>9} {'points':>9} {'load':>10}"
+    for n in args.counts:
+        flight = subset_flight(base, args.out / f"flight_{n}", n)
+        out_dir = args.out / f"recon_{n}"
+        for stale in (out_dir / "recon.json", out_dir / "proxy.json"):
+            stale.unlink(missing_ok=True)  # measure, never reuse
+        load_before = os.getloadavg()[0]
+        done = subprocess.run(
+            [sys.executable, __file__, "--one", str(flight), str(out_dir)],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+        )
+        result = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
+        if done.returncode != 0 or not result:
+            print(f"{n} images: failed\n{done.stderr[-3000:]}")
+            continue
+        record = json.loads(result[0][len("RESULT ") :])
+        record["load"] = (load_before, os.getloadavg()[0])
+        rows.append((n, record))
+        print(header if len(rows) == 1 else "", end="\n" if len(rows) == 1 else "")
+        print(
+            f"{n:>6} {record['n_registered']:>10} "
+            + " ".join(f"{record.get(s, float('nan')):>10.1f}" for s in STAGES)
+            + f" {record['total_time_s']:>8.1f} {record['peak_rss_gb']:>8.2f}"
+            + f" {record['position_error_median_m']:>9.3f} {record['n_dense_points']:>9d}"
+            + f" {record['load'][0]:>4.1f}->{record['load'][1]:<4.1f}",
+            flush=True,
+        )
+    (args.out / "bench.json").parent.mkdir(parents=True, exist_ok=True)
+    (args.out / "bench.json").write_text(json.dumps({str(n): r for n, r in rows}, indent=1, default=str))
+    print(f"cpu cores: {os.cpu_count()}; records: {args.out / 'bench.json'}")
+
+
+if __name__ == "__main__":
+    main()

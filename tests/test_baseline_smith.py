@@ -1,0 +1,165 @@
+"""Smith et al. baseline: hand-computed heuristic values, the Nelder-Mead core, the optimisation."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import trimesh
+
+from planner import smith
+from planner.base import read_viewpoints, write_plan
+from planner.smith_directions import DirectionSearch
+from planner.smith_heuristic import objective_terms, pair_terms, reconstructability
+from planner.visibility import VisibilityLimits, VisibilityModel
+from scene.camera import Intrinsics, forward_vectors, look_at, project_points
+
+CAMERA = Intrinsics(1024, 768, 60.0)
+D_MAX = 50.0
+
+
+def hand_pair(alpha_deg, d_a, d_b, theta_a_deg, theta_b_deg):
+    """The pair term written out with the published constants."""
+    a = math.radians(alpha_deg)
+    w1 = 1.0 / (1.0 + math.exp(-32.0 * (a - math.pi / 16.0)))
+    w3 = 1.0 - 1.0 / (1.0 + math.exp(-8.0 * (a - math.pi / 4.0)))
+    w2 = 1.0 - max(d_a, d_b) / D_MAX
+    return w1 * w2 * w3 * math.cos(math.radians(max(theta_a_deg, theta_b_deg)))
+
+
+def ray(theta_deg):
+    """Unit direction tilted theta from +z towards +x (theta < 0: towards -x)."""
+    t = math.radians(theta_deg)
+    return np.array([math.sin(t), 0.0, math.cos(t)])
+
+
+# Three views of a sample at the origin with normal +z: (tilt from the normal in deg, distance in m).
+VIEWS = [(0.0, 10.0), (30.0, 20.0), (-45.0, 30.0)]
+
+
+def test_pair_term_equals_hand_value():
+    (ta, da), (tb, db) = VIEWS[0], VIEWS[1]
+    got = pair_terms(
+        ray(ta), 1 - da / D_MAX, math.cos(0.0), ray(tb), 1 - db / D_MAX, math.cos(math.radians(tb))
+    )
+    assert float(got) == pytest.approx(hand_pair(30.0, da, db, 0.0, 30.0), rel=1e-12)
+
+
+@pytest.mark.parametrize("n_views", [2, 3])
+def test_h_equals_sum_of_hand_computed_pairs(n_views):
+    views = VIEWS[:n_views]
+    dirs = np.array([ray(t) for t, _ in views])[None]
+    scales = np.array([1 - d / D_MAX for _, d in views])[None]
+    coss = np.array([math.cos(math.radians(t)) for t, _ in views])[None]
+    h = reconstructability(dirs, scales, coss, np.ones((1, n_views), bool))
+    expected = sum(
+        hand_pair(
+            abs(views[i][0] - views[j][0]), views[i][1], views[j][1], abs(views[i][0]), abs(views[j][0])
+        )
+        for i in range(n_views)
+        for j in range(i + 1, n_views)
+    )
+    assert h[0] == pytest.approx(expected, rel=1e-12)
+    assert objective_terms(h)[0] == pytest.approx((3.0 - expected) ** 2, rel=1e-12)
+
+
+def test_unobserved_sample_has_h_minus_one_and_single_view_zero():
+    dirs = np.zeros((2, 3, 3))
+    dirs[1, 0] = [0, 0, 1]
+    valid = np.array([[False] * 3, [True, False, False]])
+    h = reconstructability(dirs, np.ones((2, 3)), np.ones((2, 3)), valid)
+    np.testing.assert_array_equal(h, [-1.0, 0.0])
+    np.testing.assert_array_equal(objective_terms(h), [16.0, 9.0])
+
+
+def flat_ground(size=200.0):
+    h = size / 2
+    v = np.array([[-h, -h, 0], [h, -h, 0], [h, h, 0], [-h, h, 0]], float)
+    return trimesh.Trimesh(v, [[0, 1, 2], [0, 2, 3]], process=False)
+
+
+def test_objective_on_a_real_visibility_model_matches_hand_value():
+    """Three cameras aimed at one ground sample: h from visibility + ray geometry equals the hand value."""
+    model = VisibilityModel(
+        flat_ground(),
+        np.zeros((1, 3)),
+        np.array([[0.0, 0.0, 1.0]]),
+        CAMERA,
+        VisibilityLimits(0.0, D_MAX, 85.0),
+    )
+    vps = np.array([look_at(ray(t) * d, np.zeros(3)).as_array() for t, d in VIEWS])
+    vps[0, 3] = 0.0  # nadir: any yaw sees the sample
+    objective = smith.SmithObjective(model, vps, D_MAX)
+    expected = hand_pair(30, 10, 20, 0, 30) + hand_pair(45, 10, 30, 0, 45) + hand_pair(75, 20, 30, 30, 45)
+    assert objective.h[0] == pytest.approx(expected, rel=1e-5)
+    assert objective.objective() == pytest.approx((3.0 - expected) ** 2, rel=1e-5)
+
+
+def test_nelder_mead_step_minimises_a_quadratic():
+    centre = np.array([1.0, -2.0, 3.0])
+
+    def evaluate(points):
+        v = np.sum((points - centre) ** 2, axis=1)
+        return v, np.zeros(len(points)), np.zeros(len(points))
+
+    stepper = smith.NelderMeadStepper(evaluate)
+    rng = np.random.default_rng(0)
+    simplices = np.stack(
+        [smith.initial_simplex(np.zeros(3), 0.25, rng), smith.initial_simplex(centre + 5, 0.5, rng)]
+    )
+    for _ in range(150):
+        best, value, _, _ = stepper.step(simplices)
+    np.testing.assert_allclose(best, np.stack([centre, centre]), atol=1e-3)
+    assert np.all(value < 1e-6)
+
+
+def test_direction_search_finds_the_direction_of_a_single_gain():
+    search = DirectionSearch(CAMERA, n_yaw=64, n_pitch=23)
+    target = forward_vectors(40.0, -30.0)
+    gains = np.zeros((1, search.n_bins))
+    gains[0, search.bin_of(target[None])[0]] = -2.5
+    value, yaw, pitch = search.best(gains)
+    assert value[0] == pytest.approx(-2.5)
+    # The winning direction (the first of the tied ones) holds the gain's bin inside its image.
+    bin_dir = search.bins[search.bin_of(target[None])[0]]
+    pixels, depth = project_points(bin_dir[None], np.array([[0, 0, 0, yaw[0], pitch[0]]]), CAMERA)
+    assert depth[0, 0] > 0
+    assert 0 <= pixels[0, 0, 0] <= CAMERA.width and 0 <= pixels[0, 0, 1] <= CAMERA.height
+    # A gain nobody's frustum can hold (straight up) gives value 0.
+    up = np.zeros((1, search.n_bins))
+    up[0, search.bin_of(np.array([[0.0, 0.0, 1.0]]))[0]] = -1.0
+    assert search.best(up)[0][0] == 0.0
+
+
+def test_nelder_mead_stage_lowers_objective_on_a_toy_proxy(tmp_path):
+    building = trimesh.creation.box(extents=(12.0, 8.0, 6.0))
+    building.apply_translation((0, 0, 3.0))
+    proxy = trimesh.util.concatenate([flat_ground(60.0), building])
+    params = {"n_samples": 400, "max_iters": 3, "n_yaw": 64, "n_pitch": 23, "progress": False}
+    plan = smith.plan(proxy, CAMERA, params, seed=0)
+    info = plan.info
+    assert info["optimisation"]["steps"] > 0
+    assert info["objective_final"] < info["objective_initial"] - 0.05
+    assert len(plan.viewpoints) == info["n_initial_views"]
+    # Constraints of the optimisation hold for every final view.
+    model = VisibilityModel(
+        proxy, np.zeros((1, 3)), np.array([[0, 0, 1.0]]), CAMERA, VisibilityLimits(0, 50, 85)
+    )
+    assert np.all(plan.viewpoints[:, 2] >= 5.0 - 1e-6)
+    assert np.all(model.clearance(plan.viewpoints[:, :3]) >= 5.0 - 0.01)
+    assert np.all(plan.viewpoints[:, 4] <= 0.0)
+    # The plan round-trips through the run directory's plan files.
+    write_plan(plan, tmp_path)
+    read_back, kinds = read_viewpoints(tmp_path / "viewpoints.csv")
+    np.testing.assert_allclose(read_back, plan.viewpoints, atol=1e-6)
+    assert kinds == plan.kinds
+
+
+def test_bad_settings_are_refused_by_name():
+    with pytest.raises(ValueError, match="front_overlap"):
+        smith._merged({"front_overlap": 1.0})
+    with pytest.raises(ValueError, match="min_distance_m"):
+        smith._merged({"min_distance_m": 60.0})
+    with pytest.raises(ValueError, match="unknown"):
+        smith._merged({"h_targt": 3})

@@ -1,0 +1,136 @@
+"""Yan et al. baseline: score formulas, quality, view-sampling space, selection coverage."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import trimesh
+
+from planner import yan
+from planner.base import PlanningError, read_viewpoints, write_plan
+from planner.visibility import VisibilityLimits, VisibilityModel
+from scene.camera import Intrinsics, look_at
+
+CAMERA = Intrinsics(1024, 768, 60.0)
+
+
+def flat_ground(size):
+    h = size / 2
+    v = np.array([[-h, -h, 0], [h, -h, 0], [h, h, 0], [-h, h, 0]], float)
+    return trimesh.Trimesh(v, [[0, 1, 2], [0, 2, 3]], process=False)
+
+
+def toy_proxy():
+    building = trimesh.creation.box(extents=(12.0, 8.0, 6.0))
+    building.apply_translation((0, 0, 3.0))
+    return trimesh.util.concatenate([flat_ground(50.0), building])
+
+
+def test_view_scores_equal_the_formulas():
+    d_min, d_opt, d_max = 25.0 / 3.0, 10.0, 35.0 / 3.0
+    model = VisibilityModel(
+        flat_ground(100.0),
+        np.zeros((1, 3)),
+        np.array([[0.0, 0.0, 1.0]]),
+        CAMERA,
+        VisibilityLimits(d_min, d_max, 85.0),
+    )
+    t = math.radians(60.0)
+    d_side = 0.5 * (d_opt + d_max)
+    vps = np.array(
+        [
+            look_at([0.0, 0.0, d_opt], np.zeros(3)).as_array(),  # frontal at d_opt: 1
+            look_at([d_side * math.sin(t), 0.0, d_side * math.cos(t)], np.zeros(3)).as_array(),
+            look_at([0.0, 0.0, 9.0], np.zeros(3)).as_array(),
+        ]
+    )
+    scores = yan.view_scores(model, vps, d_min, d_opt, 60.0, batch=10).toarray()[:, 0]
+    c_d_side = 1.0 - (d_side - d_opt) ** 2 / (d_opt - d_min) ** 2
+    c_o_side = math.exp(-((1.0 - 0.5) ** 2) / (1.0 - 0.5) ** 2)
+    c_d_9 = 1.0 - (9.0 - d_opt) ** 2 / (d_opt - d_min) ** 2
+    np.testing.assert_allclose(scores, [1.0, c_d_side * c_o_side, c_d_9], rtol=1e-5)
+
+
+def test_sample_above_the_camera_scores_zero():
+    model = VisibilityModel(
+        flat_ground(100.0),
+        np.array([[0.0, 0.0, 5.0]]),
+        np.array([[-1.0, 0.0, 0.0]]),
+        CAMERA,
+        VisibilityLimits(1.0, 20.0, 85.0),
+    )
+    below = look_at([-10.0, 0.0, 2.0], [0.0, 0.0, 5.0]).as_array()[None]
+    level = look_at([-10.0, 0.0, 5.0], [0.0, 0.0, 5.0]).as_array()[None]
+    assert yan.view_scores(model, below, 5.0, 10.0, 60.0, 10).toarray()[0, 0] == 0.0
+    assert yan.view_scores(model, level, 5.0, 10.0, 60.0, 10).toarray()[0, 0] == pytest.approx(1.0, rel=1e-5)
+
+
+def test_quality_is_one_on_a_plane_and_lowest_at_box_edges():
+    plane_pts = np.random.default_rng(0).random((300, 3)) * [10, 10, 0]
+    normals = np.tile([0.0, 0.0, 1.0], (300, 1))
+    np.testing.assert_array_equal(yan.sample_quality(plane_pts, normals, 1.0, 60.0), 1.0)
+    box = trimesh.creation.box(extents=(10.0, 10.0, 10.0))
+    pts, face = trimesh.sample.sample_surface_even(box, 2000, seed=0)
+    q = yan.sample_quality(pts, box.face_normals[face], 1.0, 60.0)
+    edge_distance = 5.0 - np.sort(np.abs(pts), axis=1)[:, 1]  # distance to the nearest edge
+    assert q[edge_distance < 0.3].mean() < 0.5 < q[edge_distance > 2.5].mean()
+    assert q[edge_distance > 2.5].min() == pytest.approx(1.0)
+
+
+def test_selection_covers_the_configured_fraction_of_samples(tmp_path):
+    proxy = toy_proxy()
+    params = {"n_samples": 600, "n_candidates": 3000, "progress": False, "min_coverage": 0.95}
+    plan = yan.plan(proxy, CAMERA, params, seed=0)
+    info = plan.info
+    assert info["fraction_coverable_covered"] >= 0.95
+    assert info["fraction_coverable"] > 0.8
+    # Independent recount on the final flight.
+    points, normals = yan.sample_surface(proxy, 600, 0)
+    d_min, d_opt, d_max = yan.distance_limits(yan._merged(params))
+    model = VisibilityModel(proxy, points, normals, CAMERA, VisibilityLimits(d_min, d_max, 85.0))
+    counts = np.asarray((yan.view_scores(model, plan.viewpoints, d_min, d_opt, 60.0, 500) >= 0.1).sum(axis=0))
+    assert np.mean(counts.ravel() >= 2) == pytest.approx(info["fraction_observed_min"])
+    # Every viewpoint lies in the view-sampling band (up to the voxel jitter) and above min altitude.
+    clearance = model.clearance(plan.viewpoints[:, :3])
+    assert np.all(clearance >= d_min - 0.9) and np.all(clearance <= d_max + 0.9)
+    assert np.all(plan.viewpoints[:, 2] >= 2.0)
+    assert info["n_key_images"] == len(plan.viewpoints) <= info["n_before_key_images"]
+    # The plan round-trips through the run directory's plan files.
+    write_plan(plan, tmp_path)
+    read_back, kinds = read_viewpoints(tmp_path / "viewpoints.csv")
+    np.testing.assert_allclose(read_back, plan.viewpoints, atol=1e-6)
+    assert kinds == plan.kinds
+
+
+def test_view_sampling_space_lies_in_the_distance_band():
+    proxy = toy_proxy()
+    p = yan._merged({"voxel_size_m": 2.0})
+    d_min, _, d_max = yan.distance_limits(p)
+    model = VisibilityModel(
+        proxy, np.zeros((1, 3)), np.array([[0, 0, 1.0]]), CAMERA, VisibilityLimits(1, 20, 85)
+    )
+    space = yan.view_sampling_space(model, proxy, p)
+    clearance = model.clearance(space)
+    assert np.all((clearance >= d_min - 1e-4) & (clearance <= d_max + 1e-4))
+    assert np.all(space[:, 2] >= 2.0)
+
+
+@pytest.mark.parametrize(
+    "params,setting",
+    [
+        ({"target_distance_m": 0.0}, "target_distance_m"),
+        ({"d_min_ratio": 1.2}, "d_min_ratio"),
+        ({"theta_t_deg": 95.0}, "theta_t_deg"),
+        ({"n_sample": 5}, "unknown"),
+    ],
+)
+def test_bad_settings_are_refused_by_name(params, setting):
+    with pytest.raises(ValueError, match=setting):
+        yan._merged(params)
+
+
+def test_no_valid_position_is_a_clear_error():
+    with pytest.raises(PlanningError, match="min_altitude_m"):
+        yan.plan(toy_proxy(), CAMERA, {"min_altitude_m": 500.0, "progress": False}, seed=0)

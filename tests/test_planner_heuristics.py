@@ -1,0 +1,214 @@
+"""Eq. 1-9 on hand-computed cases, and the incremental objective against the dense reference."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from planner.heuristics import (
+    HeuristicParams,
+    angular_spread,
+    connectivity_score,
+    coverage_point_scores,
+    distance_score,
+    global_score,
+    overlap_pair_scores,
+    overlap_ratios,
+    point_scores,
+    smith_w1,
+    smith_w3,
+    viewpoint_set_scores,
+)
+from planner.objective import ObjectiveState
+from planner.visibility import Observations
+
+PARAMS = HeuristicParams(
+    k_count=3, target_lo_m=8.0, target_hi_m=12.0, d_margin_m=4.0, r_min=0.1, r_max=0.5, top_k=2, tau_edge=0.25
+)
+
+
+def _obs_for_point(normal, view_dirs, distances) -> Observations:
+    """Observations of one point at the origin seen along unit ``view_dirs`` at ``distances``."""
+    u = np.asarray(view_dirs, dtype=np.float32).reshape(-1, 1, 3)
+    u /= np.linalg.norm(u, axis=-1, keepdims=True)
+    n = np.asarray(normal, dtype=np.float32)
+    return Observations(
+        visible=np.ones((len(u), 1), bool),
+        distance=np.asarray(distances, dtype=np.float32).reshape(-1, 1),
+        direction=u,
+        cos_incidence=(u @ n).reshape(-1, 1),
+    )
+
+
+def test_smith_constants():
+    assert smith_w1(math.pi / 16) == pytest.approx(0.5)
+    assert smith_w3(math.pi / 4) == pytest.approx(0.5)
+    assert smith_w1(0.0) == pytest.approx(1.0 / (1.0 + math.exp(32 * math.pi / 16)))
+    assert smith_w3(0.0) == pytest.approx(1.0 - 1.0 / (1.0 + math.exp(8 * math.pi / 4)))
+
+
+def test_one_frontal_view_at_target_distance():
+    obs = _obs_for_point([0, 0, 1], [[0, 0, 1]], [10.0])
+    s = point_scores(obs.visible, obs.distance, obs.direction, obs.cos_incidence, PARAMS)
+    w = 1.0 / (1.0 + math.exp(2.0 * math.pi))  # w1(0) = 1 - w3(0) = 1 / (1 + e^{2 pi})
+    assert s["front"][0] == pytest.approx(1.0)
+    assert s["distance"][0] == pytest.approx(1.0)
+    assert s["sigma"][0] == pytest.approx(0.0, abs=1e-6)
+    assert s["parallax"][0] == pytest.approx(w * (1.0 - w))
+    assert s["count"][0] == pytest.approx(1.0 / 3.0)
+    assert s["R_point"][0] == pytest.approx(w * (1.0 - w) / 3.0)
+
+
+def test_two_views_with_known_angular_spread():
+    theta = math.radians(20.0)
+    dirs = [[math.sin(theta), 0, math.cos(theta)], [-math.sin(theta), 0, math.cos(theta)]]
+    obs = _obs_for_point([0, 0, 1], dirs, [10.0, 14.0])  # second view 2 m past the range: 0.5
+    s = point_scores(obs.visible, obs.distance, obs.direction, obs.cos_incidence, PARAMS)
+    assert s["sigma"][0] == pytest.approx(theta, rel=1e-5)
+    assert s["front"][0] == pytest.approx(math.cos(theta), rel=1e-6)
+    assert s["distance"][0] == pytest.approx(1.0)  # the best observation
+    expected = math.cos(theta) * 1.0 * smith_w1(theta) * smith_w3(theta) * (2.0 / 3.0)
+    assert s["R_point"][0] == pytest.approx(expected, rel=1e-5)
+
+
+def test_three_views_spread_and_count_saturates():
+    a = math.radians(30.0)
+    dirs = [[0, 0, 1], [math.sin(a), 0, math.cos(a)], [-math.sin(a), 0, math.cos(a)]]
+    obs = _obs_for_point([0, 0, 1], dirs, [9.0, 10.0, 11.0])
+    sigma = angular_spread(obs.direction, obs.visible)[0]
+    assert sigma == pytest.approx(a * math.sqrt(2.0 / 3.0), rel=1e-5)
+    s = point_scores(obs.visible, obs.distance, obs.direction, obs.cos_incidence, PARAMS)
+    assert s["count"][0] == 1.0 and s["front"][0] == pytest.approx(1.0)
+
+
+def test_distance_ramp():
+    d = np.array([4.0, 6.0, 8.0, 10.0, 12.0, 13.0, 16.0, 30.0])
+    np.testing.assert_allclose(
+        distance_score(d, 8.0, 12.0, 4.0), [0.0, 0.5, 1, 1, 1, 0.75, 0.0, 0.0], atol=1e-6
+    )
+
+
+def test_disconnected_viewpoint_graph():
+    vis = np.zeros((5, 12), bool)
+    vis[0:3, 0:4] = True  # component A: views 0, 1, 2 share points 0-3
+    vis[3:5, 6:10] = True  # component B: views 3, 4 share points 6-9
+    r = overlap_ratios(vis)
+    assert r[0, 1] == 1.0 and r[0, 3] == 0.0 and r[3, 4] == 1.0 and r[0, 0] == 0.0
+    f = overlap_pair_scores(r, 0.1, 0.5)
+    assert connectivity_score(f, 0.25) == pytest.approx(3.0 / 5.0)
+    v = viewpoint_set_scores(vis, PARAMS)
+    assert v["visibility"] == pytest.approx(20.0 / 60.0)
+    assert v["overlap"] == pytest.approx((3 * 1.0 + 2 * 0.5) / 5.0)  # top-2: A (1, 1), B (1, 0)
+    assert v["connectivity"] == pytest.approx(0.6)
+    assert v["R_viewpoint"] == pytest.approx((1.0 / 3.0 + 0.8 + 0.6) / 3.0)
+
+
+def test_overlap_ramp_and_partial_ratio():
+    vis = np.zeros((2, 10), bool)
+    vis[0, :10] = True
+    vis[1, 7:10] = True  # 3 common of min(10, 3) = 3 -> r = 1
+    vis2 = np.zeros((2, 10), bool)
+    vis2[0, :5] = True
+    vis2[1, 3:10] = True  # 2 common / min(5, 7) -> r = 0.4 -> f = 0.75
+    assert overlap_ratios(vis)[0, 1] == pytest.approx(1.0)
+    assert overlap_pair_scores(overlap_ratios(vis2), 0.1, 0.5)[0, 1] == pytest.approx(0.75)
+
+
+def test_global_score_is_point_sum_plus_P_times_viewpoint_score():
+    obs = _random_obs(np.random.default_rng(0), 6, 20)
+    g = global_score(obs.visible, obs.distance, obs.direction, obs.cos_incidence, PARAMS)
+    pts = point_scores(obs.visible, obs.distance, obs.direction, obs.cos_incidence, PARAMS)
+    assert g["R"] == pytest.approx(pts["R_point"].sum() + 20 * g["R_viewpoint"])
+
+
+def _random_obs(rng, n_vp: int, n_pt: int, density: float = 0.3) -> Observations:
+    """Observations of points on the upper hemisphere side, visibility in blocks (several components)."""
+    vis = rng.random((n_vp, n_pt)) < density
+    block = rng.integers(0, 3, n_vp)  # viewpoints of a block see mostly the same third of the points
+    third = np.arange(n_pt) * 3 // n_pt
+    vis &= (block[:, None] == third[None]) | (rng.random((n_vp, n_pt)) < 0.05)
+    u = rng.normal(size=(n_vp, n_pt, 3))
+    u[..., 2] = np.abs(u[..., 2]) + 0.5
+    u /= np.linalg.norm(u, axis=-1, keepdims=True)
+    return Observations(
+        visible=vis,
+        distance=rng.uniform(4.0, 18.0, (n_vp, n_pt)).astype(np.float32),
+        direction=np.where(vis[..., None], u, 0.0).astype(np.float32),
+        cos_incidence=u[..., 2].astype(np.float32),
+    )
+
+
+def _reference(obs: Observations, params, mode="detail", point_rows=None):
+    if mode == "detail":
+        return global_score(obs.visible, obs.distance, obs.direction, obs.cos_incidence, params)
+    rows = np.ones(len(obs), bool) if point_rows is None else point_rows
+    pts = coverage_point_scores(obs.visible[rows], obs.distance[rows], params)
+    vset = viewpoint_set_scores(obs.visible, params)
+    return {"R": pts.sum() + obs.visible.shape[1] * vset["R_viewpoint"], **vset}
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_incremental_objective_matches_reference(seed):
+    rng = np.random.default_rng(seed)
+    n_pt = 60
+    base = _random_obs(rng, 14, n_pt)
+    state = ObjectiveState(PARAMS, n_pt)
+    state.reset(base)
+    assert state.R == pytest.approx(_reference(base, PARAMS)["R"], rel=1e-7, abs=1e-9)
+    cluster = np.array([1, 4, 5, 9])
+    alts = _random_obs(rng, 3 * len(cluster), n_pt)
+    prop = state.evaluate(cluster, alts, 3)
+    for i in range(3):
+        rows = np.arange(14)
+        new_rows = Observations.concatenate(
+            [base.take(np.setdiff1d(rows, cluster)), alts.take(np.arange(4 * i, 4 * i + 4))], n_pt
+        )
+        ref = _reference(new_rows, PARAMS)
+        assert prop.R[i] == pytest.approx(ref["R"], rel=1e-7)
+        assert prop.connectivity[i] == pytest.approx(ref["connectivity"])
+        assert prop.overlap[i] == pytest.approx(ref["overlap"])
+    # commit the second alternative in place: rows keep their order
+    state.commit(cluster, alts.take(np.arange(4, 8)))
+    current = base.take(np.arange(14))
+    for k, row in enumerate(cluster):
+        current.visible[row] = alts.visible[4 + k]
+        current.distance[row] = alts.distance[4 + k]
+        current.direction[row] = alts.direction[4 + k]
+        current.cos_incidence[row] = alts.cos_incidence[4 + k]
+    assert state.R == pytest.approx(prop.R[1], rel=1e-7)
+    assert state.R == pytest.approx(_reference(current, PARAMS)["R"], rel=1e-7)
+    # removal and addition
+    prop = state.evaluate([3, 7])
+    kept = current.take(np.setdiff1d(np.arange(14), [3, 7]))
+    assert prop.R[0] == pytest.approx(_reference(kept, PARAMS)["R"], rel=1e-7)
+    state.commit([3, 7])
+    extra = _random_obs(rng, 2, n_pt)
+    prop = state.evaluate([], extra)
+    state.commit([], extra)
+    grown = Observations.concatenate([kept, extra], n_pt)
+    assert prop.R[0] == pytest.approx(state.R, rel=1e-12)
+    assert state.R == pytest.approx(_reference(grown, PARAMS)["R"], rel=1e-7)
+    np.testing.assert_array_equal(state.count, grown.visible.sum(axis=0))
+
+
+def test_incremental_coverage_objective_with_rows_not_counting_for_points():
+    rng = np.random.default_rng(5)
+    n_pt = 50
+    params = HeuristicParams(
+        k_count=2, target_lo_m=10.0, target_hi_m=14.0, d_margin_m=6.0, top_k=3, coverage_closeness_weight=0.1
+    )
+    base = _random_obs(rng, 10, n_pt)
+    point_rows = np.r_[np.zeros(6, bool), np.ones(4, bool)]  # six detail rows, four coverage rows
+    state = ObjectiveState(params, n_pt, mode="coverage")
+    state.reset(base, point_rows=point_rows)
+    assert state.R == pytest.approx(_reference(base, params, "coverage", point_rows)["R"], rel=1e-7)
+    alts = _random_obs(rng, 4, n_pt)
+    prop = state.evaluate([6, 8], alts, 2)
+    for i in range(2):
+        new = Observations.concatenate(
+            [base.take([0, 1, 2, 3, 4, 5, 7, 9]), alts.take([2 * i, 2 * i + 1])], n_pt
+        )
+        ref = _reference(new, params, "coverage", np.r_[np.zeros(6, bool), np.ones(4, bool)])
+        assert prop.R[i] == pytest.approx(ref["R"], rel=1e-7)
