@@ -55,12 +55,22 @@ def obtain_proxy(scene, intrinsics, cfg: DictConfig, record: dict):
     return proxy
 
 
+def planner_params(cfg: DictConfig) -> DictConfig:
+    """The planner's parameters with the experiment preset's overrides for this planner merged in.
+
+    Presets (conf/experiment/*.yaml) carry ``experiment.planner_overrides.<planner name>``, because
+    each planner has parameters of its own.
+    """
+    overrides = OmegaConf.select(cfg, f"experiment.planner_overrides.{cfg.planner.name}")
+    return OmegaConf.merge(cfg.planner, overrides) if overrides else cfg.planner
+
+
 def run_cell(cfg: DictConfig, run_dir: Path, record: dict) -> None:
     """Chain the stages for one (scene, planner, seed) cell; fill ``record`` as they complete."""
     from scene.camera import Intrinsics
 
     record["stage"] = "scene"
-    scene = stage("scene.registry", "load_scene")(cfg.scene)
+    scene = stage("scene.registry", "load_scene")(cfg.scene, cache_dir=cfg.cache_dir)
     intrinsics = Intrinsics(**cfg.camera)
 
     record["stage"] = "proxy"
@@ -70,7 +80,7 @@ def run_cell(cfg: DictConfig, run_dir: Path, record: dict) -> None:
     plan_fn = hydra.utils.get_method(cfg.planner._target_)
     write_plan = stage("planner.base", "write_plan")
     start = time.perf_counter()
-    plan = plan_fn(proxy, intrinsics, cfg.planner, cfg.seed)
+    plan = plan_fn(proxy, intrinsics, planner_params(cfg), cfg.seed)
     record["plan_time_s"] = time.perf_counter() - start
     write_plan(plan, run_dir / "plan")
     record.update(n_viewpoints=len(plan.viewpoints), flight_length_m=plan.flight_length_m)

@@ -32,6 +32,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--region",
         help="evaluation region x0,y0,z0,x1,y1,z1 in metres (with --gt-mesh; default: the mesh's bounds)",
     )
+    parser.add_argument(
+        "--scene-set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a scene setting, e.g. --scene mesh --scene-set path=model.obj (repeatable)",
+    )
     parser.add_argument("--out", type=Path, help="output folder (default: <file>_eval beside the file)")
     parser.add_argument(
         "--config", default="default", help="evaluation config name in conf/evaluate/ (default: default)"
@@ -89,7 +96,7 @@ def load_ground_truth(args):
     if args.scene is not None:
         if args.region is not None:
             raise ValueError("--region goes with --gt-mesh; a scene brings its own evaluation region")
-        return load_scene_by_name(args.scene)
+        return load_scene_by_name(args.scene, args.scene_set)
     if not args.gt_mesh.is_file():
         raise FileNotFoundError(f"ground-truth mesh not found: {args.gt_mesh}")
     try:
@@ -102,8 +109,9 @@ def load_ground_truth(args):
     return GroundTruth(args.gt_mesh.stem, mesh, region)
 
 
-def load_scene_by_name(name: str):
-    """``scene.registry.load_scene`` on ``conf/scene/<name>.yaml`` composed like ``run.py`` does."""
+def load_scene_by_name(name: str, overrides: list[str] = ()):
+    """``scene.registry.load_scene`` on ``conf/scene/<name>.yaml`` composed like ``run.py`` does,
+    with ``KEY=VALUE`` overrides of the scene settings."""
     try:
         from scene.registry import load_scene
     except ImportError as exc:
@@ -114,8 +122,8 @@ def load_scene_by_name(name: str):
         known = sorted(p.stem for p in (CONF_DIR / "scene").glob("*.yaml"))
         raise ValueError(f"unknown scene {name!r}; known scenes: {known}")
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
-        cfg = compose(config_name="config", overrides=[f"scene={name}"])
-    return load_scene(cfg.scene)
+        cfg = compose(config_name="config", overrides=[f"scene={name}", *(f"scene.{o}" for o in overrides)])
+    return load_scene(cfg.scene, cache_dir=cfg.get("cache_dir"))
 
 
 def main(argv: list[str] | None = None) -> int:

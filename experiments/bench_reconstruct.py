@@ -22,6 +22,8 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script from anywhere
+    sys.path.insert(0, str(ROOT))
 STAGES = (
     "extraction_time_s",
     "matching_time_s",
@@ -108,6 +110,7 @@ def main() -> None:
     rows = []
     header = f"{'images':>6} {'registered':>10} " + " ".join(f"{s[:-7]:>10}" for s in STAGES)
     header += f" {'total':>8} {'peak GB':>8} {'pos med m':>9} {'points':>9} {'load':>10}"
+    print(header, flush=True)
     for n in args.counts:
         flight = subset_flight(base, args.out / f"flight_{n}", n)
         out_dir = args.out / f"recon_{n}"
@@ -127,7 +130,6 @@ def main() -> None:
         record = json.loads(result[0][len("RESULT ") :])
         record["load"] = (load_before, os.getloadavg()[0])
         rows.append((n, record))
-        print(header if len(rows) == 1 else "", end="\n" if len(rows) == 1 else "")
         print(
             f"{n:>6} {record['n_registered']:>10} "
             + " ".join(f"{record.get(s, float('nan')):>10.1f}" for s in STAGES)

@@ -73,7 +73,7 @@ def cull(
         # R without a viewpoint only changes when the set does: score each one once per set
         for x in options:
             if x not in removal_score:
-                removal_score[x] = float(state.evaluate([row_of[x]]).R[0])
+                removal_score[x] = state.evaluate_removal(row_of[x])
         scores = [removal_score[x] for x in options]
         tried += 1
         best = int(np.argmax(scores))

@@ -64,6 +64,7 @@ class ObjectiveState:
         self.point_score = np.zeros(self.n_points)
         self.count = np.zeros(self.n_points, np.int64)
         self.evaluations = 0
+        self._removal_cache = None
         self._parts = self._full_parts()
 
     # Row storage with spare capacity: appending a viewpoint does not copy the (V, P) arrays.
@@ -199,6 +200,7 @@ class ObjectiveState:
 
     # ---------------------------------------------------------------------------- full score
     def _full_parts(self) -> dict[str, float]:
+        self._removal_cache = None  # called after every change of the set
         n_vp = self.n_viewpoints
         rp = float(self.point_score.sum())
         if n_vp == 0:
@@ -312,6 +314,58 @@ class ObjectiveState:
         s_conn = self._largest_component(f_kk, f_nk, f_nn) / n_total
         r_vp = (s_vis + s_ovl + s_conn) / 3.0
         return Proposal(r_point + n_pt * r_vp, r_point, s_vis, s_ovl, s_conn)
+
+    def evaluate_removal(self, row: int) -> float:
+        """R after removing the single viewpoint ``row`` (= ``evaluate([row]).R[0]``, faster).
+
+        Per set, each row's top-(k+1) pair scores and the overlap graph are cached: dropping one
+        viewpoint then changes a row's top-k sum only when the dropped pair was in it (the (k+1)-th
+        score takes its place), and the components come from the cached graph minus one node.
+        """
+        row = int(row)
+        n, n_pt, k = self._n, self.n_points, int(self.params.top_k)
+        if n <= 1:
+            return float(self.evaluate([row]).R[0])
+        cache = self._removal_cache
+        if cache is None:
+            nv = self.n_visible
+            f = self._pair_scores(self.common, nv, nv)
+            np.fill_diagonal(f, 0.0)
+            width = min(k + 1, n)
+            part = -np.partition(-f, width - 1, axis=1)[:, :width] if width < n else f
+            top = -np.sort(-part, axis=1)  # descending
+            top = np.pad(top[:, :width], ((0, 0), (0, k + 1 - width)))
+            cache = self._removal_cache = {
+                "f": f,
+                "topk_sum": top[:, :k].sum(axis=1),
+                "kth": top[:, k - 1],
+                "next": top[:, k],
+                "edges": coo_matrix(f > self.params.tau_edge).tocsr(),
+                "n_visible": nv,
+            }
+        self.evaluations += 1
+        keep_mask = np.ones(n, bool)
+        keep_mask[row] = False
+        cols = np.flatnonzero(self._vis[row, :n_pt] if n else np.zeros(n_pt, bool))
+        r_point = float(self.point_score.sum())
+        if len(cols):
+            empty = Observations.empty(n_pt)
+            r_point += float(
+                self._touched_point_scores(cols, keep_mask, empty, 1, 0, np.zeros(0, bool)).sum()
+            )
+            r_point -= float(self.point_score[cols].sum())
+        n_total = n - 1
+        nv = cache["n_visible"]
+        s_vis = (nv.sum() - nv[row]) / (n_total * n_pt)
+        f_col = cache["f"][:, row]
+        in_top = f_col >= cache["kth"]
+        sums = cache["topk_sum"] - np.where(in_top, f_col - cache["next"], 0.0)
+        s_ovl = float(sums[keep_mask].sum() / (k * n_total))
+        keep = np.flatnonzero(keep_mask)
+        sub = cache["edges"][keep][:, keep]
+        _, labels = connected_components(sub, directed=False)
+        s_conn = float(np.bincount(labels).max() / n_total)
+        return r_point + n_pt * (s_vis + s_ovl + s_conn) / 3.0
 
     def _touched_point_scores(self, cols, keep_mask, new: Observations, lam, m, npr) -> np.ndarray:
         """New point scores (L, T) of the touched columns under each alternative."""

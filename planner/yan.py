@@ -21,7 +21,9 @@ scenes", Remote Sensing 13(5):989) baseline. No public code: built from the pape
    candidates adjacent to chosen ones, until no candidate adds anything.
 6. Key-image selection on the flight order: a view whose observed samples overlap the previous key
    view's by more than ``key_max_overlap``, or that observes fewer than ``key_min_samples``
-   samples, is dropped.
+   samples, is dropped -- unless a sample it observes would fall below min(min_observations, its
+   count before the step). The paper selects key images of the exploratory flight; a planner
+   gets no images, so the rule runs on the planned views' observed samples.
 7. Flight order: travelling-salesman path (``planner.trajectory``; the paper used ant-colony
    optimisation on a distance/direction cost, we use the shared LKH path on distance).
 """

@@ -39,6 +39,8 @@ BACKENDS = ("auto", "cpu", "cuda")
 DEPTH_SUFFIX = ".geometric.bin"
 # A rectified view larger than this many times the source image comes from a near-degenerate pair.
 _MAX_RECTIFIED_AREA_RATIO = 4.0
+# A normal window whose depths spread more than this (relative) straddles an occlusion edge.
+_MAX_WINDOW_DEPTH_JUMP = 0.05
 
 
 @dataclass(frozen=True)
@@ -344,7 +346,10 @@ def normals_from_depth(depth: np.ndarray, K: np.ndarray, window: int) -> np.ndar
     """Unit normals (H, W, 3) in the camera frame from a depth map (NaN = none), facing the camera.
 
     The back-projected points are box-filtered over ``window`` pixels before central differences
-    over ``window // 2`` pixels, so SGBM's sub-pixel noise does not dominate. Zero where undefined.
+    over ``window // 2`` pixels, so SGBM's sub-pixel noise does not dominate. Windows that are not
+    full or straddle a depth jump (> ``_MAX_WINDOW_DEPTH_JUMP`` relative) give no normal; such
+    pixels near a surface's edge then take the mean normal of their neighbours, so the edges of
+    surfaces are not eroded by the window. Zero where undefined.
     """
     h, w = depth.shape
     valid = np.isfinite(depth)
@@ -352,9 +357,14 @@ def normals_from_depth(depth: np.ndarray, K: np.ndarray, window: int) -> np.ndar
     rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
     points = np.where(valid[..., None], rays * np.nan_to_num(depth)[..., None], 0.0).astype(np.float32)
     k = max(1, int(window))
+    kernel = np.ones((k, k), np.uint8)
     weight = cv2.boxFilter(valid.astype(np.float32), -1, (k, k), normalize=False)
     summed = cv2.boxFilter(points, -1, (k, k), normalize=False)
-    full = weight >= 0.999 * k * k
+    depth_hi = cv2.dilate(np.where(valid, depth, 0.0).astype(np.float32), kernel)
+    depth_lo = cv2.erode(np.where(valid, depth, np.inf).astype(np.float32), kernel)
+    with np.errstate(invalid="ignore"):
+        smooth_window = (depth_hi - depth_lo) <= _MAX_WINDOW_DEPTH_JUMP * depth_lo
+    full = (weight >= 0.999 * k * k) & smooth_window
     smooth = summed / np.maximum(weight, 1.0)[..., None]
     s = max(1, k // 2)
     du = np.zeros_like(smooth)
@@ -368,6 +378,20 @@ def normals_from_depth(depth: np.ndarray, K: np.ndarray, window: int) -> np.ndar
     norm = np.linalg.norm(normals, axis=-1)
     ok &= norm > 0
     normals[ok] /= norm[ok][:, None]
+    normals[~ok] = 0.0
+    # Grow the normals into the valid pixels they do not reach (edges of surfaces), 1 px a step.
+    for _ in range(2 * s + 1):
+        missing = valid & ~ok
+        if not missing.any():
+            break
+        count = cv2.boxFilter(ok.astype(np.float32), -1, (3, 3), normalize=False)
+        mean = cv2.boxFilter(normals, -1, (3, 3), normalize=False)
+        grow = missing & (count > 0)
+        length = np.linalg.norm(mean[grow], axis=-1)
+        keep = length > 1e-6
+        rows, cols = np.nonzero(grow)
+        normals[rows[keep], cols[keep]] = mean[grow][keep] / length[keep][:, None]
+        ok[rows[keep], cols[keep]] = True
     facing_away = np.einsum("hwc,hwc->hw", normals, rays) > 0
     normals[facing_away] *= -1.0
     normals[~ok] = 0.0

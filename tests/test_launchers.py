@@ -31,6 +31,8 @@ def main(cfg):
     record = {"scene": cfg.scene, "planner": cfg.planner, "seed": cfg.seed, "pid": os.getpid(),
               "launcher": HydraConfig.get().launcher._target_}
     (out / "metrics.json").write_text(json.dumps(record))
+    if cfg.fail == f"{cfg.scene}/{cfg.planner}":  # like run.py: record the cell, then raise
+        raise RuntimeError("this cell fails")
 
 if __name__ == "__main__":
     main()
@@ -40,6 +42,7 @@ CONFIG = """
 scene: tomb
 planner: ours
 seed: 0
+fail: none
 hydra:
   sweep:
     dir: sweep
@@ -126,14 +129,22 @@ def check_sweep(app: Path, target: str) -> None:
     assert os.getpid() not in {r["pid"] for r in records}
 
 
-def test_joblib_sweep_2x2(app):
-    result = hydra_run(app, "-m", "hydra/launcher=local", "scene=tomb,church", "planner=ours,smith")
-    assert result.returncode == 0, result.stderr
+@pytest.mark.parametrize("fail", ["none", "tomb/smith"])
+def test_joblib_sweep_2x2(app, fail):
+    result = hydra_run(
+        app, "-m", "hydra/launcher=local", "scene=tomb,church", "planner=ours,smith", f"fail={fail}"
+    )
+    # A failed cell fails the sweep's exit status but does not stop the other cells.
+    assert (result.returncode == 0) == (fail == "none"), result.stderr
     check_sweep(app, "hydra_plugins.hydra_joblib_launcher.joblib_launcher.JoblibLauncher")
 
 
-def test_ray_local_sweep_2x2(app):
+# The failing variant starts a second Ray instance (~20 s): slow.
+@pytest.mark.parametrize("fail", ["none", pytest.param("tomb/smith", marks=pytest.mark.slow)])
+def test_ray_local_sweep_2x2(app, fail):
     pytest.importorskip("hydra_plugins.hydra_ray_launcher", reason="the `ray` extra is not installed")
-    result = hydra_run(app, "-m", "hydra/launcher=ray_local", "scene=tomb,church", "planner=ours,smith")
-    assert result.returncode == 0, result.stderr
+    result = hydra_run(
+        app, "-m", "hydra/launcher=ray_local", "scene=tomb,church", "planner=ours,smith", f"fail={fail}"
+    )
+    assert (result.returncode == 0) == (fail == "none"), result.stderr
     check_sweep(app, "hydra_plugins.hydra_ray_launcher.ray_launcher.RayLauncher")

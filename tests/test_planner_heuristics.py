@@ -212,3 +212,17 @@ def test_incremental_coverage_objective_with_rows_not_counting_for_points():
         )
         ref = _reference(new, params, "coverage", np.r_[np.zeros(6, bool), np.ones(4, bool)])
         assert prop.R[i] == pytest.approx(ref["R"], rel=1e-7)
+
+
+@pytest.mark.parametrize(("n_vp", "top_k"), [(14, 2), (30, 3), (4, 4), (2, 1)])
+def test_single_removal_shortcut_matches_general_evaluation(n_vp, top_k):
+    rng = np.random.default_rng(n_vp)
+    params = HeuristicParams(top_k=top_k, target_lo_m=8.0, target_hi_m=12.0, d_margin_m=4.0)
+    obs = _random_obs(rng, n_vp, 60)
+    state = ObjectiveState(params, 60)
+    state.reset(obs)
+    for i in range(n_vp):
+        kept = obs.take(np.setdiff1d(np.arange(n_vp), [i]))
+        expected = _reference(kept, params)["R"]
+        assert state.evaluate_removal(i) == pytest.approx(expected, rel=1e-7)
+        assert state.evaluate_removal(i) == pytest.approx(state.evaluate([i]).R[0], rel=1e-12)

@@ -177,20 +177,21 @@ def _facade(b: Builder) -> None:
     """Main facade block between the towers: three portals, pilasters, two cornices, a pediment."""
     y0, y1, width, height = -48.5, _Y_FRONT + 0.5, 28.0, 30.0
     portals = [
-        dict(width=4.5, sill=0.0, spring=8.0, depth=2.0, arch=True, x=11.75),
+        dict(width=4.5, sill=0.0, spring=8.0, depth=1.8, arch=True, x=11.75),
         dict(width=3.2, sill=0.0, spring=6.0, depth=1.6, arch=True, x=3.0),
         dict(width=3.2, sill=0.0, spring=6.0, depth=1.6, arch=True, x=21.8),
     ]
     windows = [
-        dict(width=2.6, sill=1.5, spring=5.5, depth=1.2, arch=True, x=12.7),
+        dict(width=2.6, sill=3.0, spring=6.5, depth=1.2, arch=True, x=12.7),
         dict(width=1.6, sill=2.5, spring=5.5, depth=0.8, arch=True, x=3.8),
         dict(width=1.6, sill=2.5, spring=5.5, depth=0.8, arch=True, x=22.6),
     ]
     lower = 12.5
-    b.add(box_walls(-0.5 * width, y0, 0.5 * width, y1, 0.0, lower, 3.0, "stone", {"south": portals}, "wood"))
+    # The block is 4 m deep: front and back walls of 2 m each, so no wall fills another's recess.
+    b.add(box_walls(-0.5 * width, y0, 0.5 * width, y1, 0.0, lower, 2.0, "stone", {"south": portals}, "wood"))
     b.add(
         box_walls(
-            -0.5 * width, y0, 0.5 * width, y1, lower, height - lower, 3.0, "stone", {"south": windows}, "wood"
+            -0.5 * width, y0, 0.5 * width, y1, lower, height - lower, 2.0, "stone", {"south": windows}, "wood"
         )
     )
     # Pilasters (0.5 m proud) between the portals, on two storeys.
