@@ -47,10 +47,14 @@ def obtain_proxy(scene, intrinsics, cfg: DictConfig, record: dict):
         record["proxy_source"] = "ground_truth_degraded (NOT the paper's setting)"
         return degraded_ground_truth(scene, cfg.reconstruct, cfg.seed)
     if source != "reconstruction":
-        raise ValueError(f"reconstruct.proxy.source must be 'reconstruction' or 'ground_truth_degraded', got {source!r}")
+        raise ValueError(
+            f"reconstruct.proxy.source must be 'reconstruction' or 'ground_truth_degraded', got {source!r}"
+        )
     build_exploration_proxy = stage("experiments.exploration", "build_exploration_proxy")
     proxy, proxy_record = build_exploration_proxy(scene, intrinsics, cfg)
-    record.update({f"proxy_{k}": v for k, v in proxy_record.items() if isinstance(v, int | float | str | bool)})
+    record.update(
+        {f"proxy_{k}": v for k, v in proxy_record.items() if isinstance(v, int | float | str | bool)}
+    )
     record["proxy_source"] = "reconstruction"
     return proxy
 
@@ -84,12 +88,18 @@ def run_cell(cfg: DictConfig, run_dir: Path, record: dict) -> None:
     record["plan_time_s"] = time.perf_counter() - start
     write_plan(plan, run_dir / "plan")
     record.update(n_viewpoints=len(plan.viewpoints), flight_length_m=plan.flight_length_m)
-    log.info("plan: %d viewpoints, %.0f m flight in %.1f s", len(plan.viewpoints), plan.flight_length_m,
-             record["plan_time_s"])
+    log.info(
+        "plan: %d viewpoints, %.0f m flight in %.1f s",
+        len(plan.viewpoints),
+        plan.flight_length_m,
+        record["plan_time_s"],
+    )
 
     record["stage"] = "render"
     render_flight = stage("render", "render_flight")
-    rendered = render_flight(scene, plan.viewpoints, intrinsics, run_dir / "images", cfg.render, kinds=plan.kinds)
+    rendered = render_flight(
+        scene, plan.viewpoints, intrinsics, run_dir / "images", cfg.render, kinds=plan.kinds
+    )
     record.update(n_images=len(plan.viewpoints), render_time_s=rendered.render_time_s)
 
     record["stage"] = "reconstruct"

@@ -21,8 +21,14 @@ def smoke_sweep(tmp_path_factory):
     base = tmp_path_factory.mktemp("smoke")
     sweep_dir, cache_dir = base / "multirun", base / "cache"
     cmd = [
-        sys.executable, "run.py", "-m", "experiment=smoke", "scene=tomb", "planner=lawnmower,ours",
-        f"hydra.sweep.dir={sweep_dir}", f"cache_dir={cache_dir}",
+        sys.executable,
+        "run.py",
+        "-m",
+        "experiment=smoke",
+        "scene=tomb",
+        "planner=lawnmower,ours",
+        f"hydra.sweep.dir={sweep_dir}",
+        f"cache_dir={cache_dir}",
     ]
     out = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=1500)
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
@@ -59,15 +65,16 @@ def test_tables_from_the_sweep(smoke_sweep, tmp_path):
     sweep_dir, _ = smoke_sweep
     out = subprocess.run(
         [sys.executable, "-m", "experiments.tables", str(sweep_dir), "--out", str(tmp_path)],
-        cwd=ROOT, capture_output=True, text=True, timeout=300,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert out.returncode == 0, out.stderr
     for name in ("table1", "table2"):
         for ext in ("md", "tex", "csv"):
             assert (tmp_path / f"{name}.{ext}").is_file()
-    records = {
-        r["planner"]: r for r in (json.loads(p.read_text()) for p in sweep_dir.rglob("metrics.json"))
-    }
+    records = {r["planner"]: r for r in (json.loads(p.read_text()) for p in sweep_dir.rglob("metrics.json"))}
     table1 = pd.read_csv(tmp_path / "table1.csv")
     assert sorted(set(table1["planner"])) == ["lawnmower", "ours"]
     for row in table1.itertuples():

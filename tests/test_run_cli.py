@@ -43,7 +43,10 @@ def test_degraded_proxy_option():
 
 @pytest.mark.parametrize(
     ("override", "known"),
-    [("scene=atlantis", ["tomb", "church", "cathedral", "mesh"]), ("planner=magic", ["ours", "smith", "yan", "lawnmower"])],
+    [
+        ("scene=atlantis", ["tomb", "church", "cathedral", "mesh"]),
+        ("planner=magic", ["ours", "smith", "yan", "lawnmower"]),
+    ],
 )
 def test_unknown_choice_is_refused_with_the_known_ones(override, known):
     out = run_py(override)
