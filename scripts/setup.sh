@@ -28,7 +28,7 @@ if [ ! -f "$STAMP" ]; then
   echo "[setup] installing Python packages into $VENV"
   [ -x "$VENV/bin/python" ] || "$PYTHON" -m venv "$VENV"
   "$VENV/bin/python" -m pip install -q --upgrade pip
-  "$VENV/bin/python" -m pip install -q -e "$ROOT[dev]"
+  "$VENV/bin/python" -m pip install -q -e "$ROOT[dev,ray]"
   rm -f "$VENV"/.installed-*
   touch "$STAMP"
 fi
