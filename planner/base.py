@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import io
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -49,6 +50,20 @@ class Plan:
     def flight_length_m(self) -> float:
         """Length in metres of the polyline through the viewpoints in flight order."""
         return polyline_length(self.viewpoints[:, :3])
+
+
+def merge_params(planner: str, defaults: Mapping, params: Mapping | None) -> dict:
+    """``defaults`` overridden by a planner config's flat ``params``; an unknown key is an error.
+
+    ``name`` and ``_target_`` (the Hydra registry keys) are ignored.
+    """
+    merged = dict(defaults)
+    if params:
+        unknown = sorted(set(params) - set(defaults) - {"name", "_target_"})
+        if unknown:
+            raise ValueError(f"{planner}: unknown parameter(s) {unknown}; known: {sorted(defaults)}")
+        merged.update({k: v for k, v in params.items() if k in defaults})
+    return merged
 
 
 def polyline_length(positions) -> float:

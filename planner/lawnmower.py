@@ -25,7 +25,7 @@ from collections.abc import Mapping
 import numpy as np
 import trimesh
 
-from planner.base import Plan, PlanningError
+from planner.base import Plan, PlanningError, merge_params
 from scene.base import Box
 from scene.camera import Intrinsics, yaw_pitch_from_direction
 
@@ -49,12 +49,7 @@ MODES = ("centre", "nadir")
 
 
 def _merged(params: Mapping | None) -> dict:
-    merged = dict(DEFAULTS)
-    if params:
-        unknown = sorted(set(params) - set(DEFAULTS) - {"name", "_target_"})
-        if unknown:
-            raise ValueError(f"lawnmower: unknown parameter(s) {unknown}; known: {sorted(DEFAULTS)}")
-        merged.update({k: v for k, v in params.items() if k in DEFAULTS})
+    merged = merge_params("lawnmower", DEFAULTS, params)
     return merged
 
 

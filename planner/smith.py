@@ -29,7 +29,7 @@ import numpy as np
 import trimesh
 from tqdm import tqdm
 
-from planner.base import Plan, PlanningError
+from planner.base import Plan, PlanningError, merge_params
 from planner.lawnmower import footprint_m, grid_positions, structure_bounds_from_proxy
 from planner.sampling import sample_surface, validate_proxy
 from planner.smith_directions import DirectionSearch
@@ -79,12 +79,7 @@ DEFAULTS = {
 
 
 def _merged(params: Mapping | None) -> dict:
-    merged = dict(DEFAULTS)
-    if params:
-        unknown = sorted(set(params) - set(DEFAULTS) - {"name", "_target_"})
-        if unknown:
-            raise ValueError(f"smith: unknown parameter(s) {unknown}; known: {sorted(DEFAULTS)}")
-        merged.update({k: v for k, v in params.items() if k in DEFAULTS})
+    merged = merge_params("smith", DEFAULTS, params)
     for key in ("front_overlap", "side_overlap"):
         if not 0.0 <= float(merged[key]) < 1.0:
             raise ValueError(f"smith: {key} must lie in [0, 1), got {merged[key]}")

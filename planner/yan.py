@@ -40,7 +40,7 @@ import trimesh
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
-from planner.base import Plan, PlanningError
+from planner.base import Plan, PlanningError, merge_params
 from planner.sampling import sample_surface, validate_proxy
 from planner.trajectory import order_viewpoints
 from planner.visibility import VisibilityLimits, VisibilityModel
@@ -75,12 +75,7 @@ DEFAULTS = {
 
 
 def _merged(params: Mapping | None) -> dict:
-    merged = dict(DEFAULTS)
-    if params:
-        unknown = sorted(set(params) - set(DEFAULTS) - {"name", "_target_"})
-        if unknown:
-            raise ValueError(f"yan: unknown parameter(s) {unknown}; known: {sorted(DEFAULTS)}")
-        merged.update({k: v for k, v in params.items() if k in DEFAULTS})
+    merged = merge_params("yan", DEFAULTS, params)
     if not 0.0 < float(merged["d_min_ratio"]) < 1.0 < float(merged["d_max_ratio"]):
         raise ValueError(
             "yan: need 0 < d_min_ratio < 1 < d_max_ratio, got "
