@@ -125,6 +125,20 @@ def _check_plan(viewpoints, kinds) -> tuple[np.ndarray, list[str]]:
     return viewpoints, kinds
 
 
+def _flight_geometry(viewpoints, kinds, mesh, arrow_length_m: float | None):
+    """Validated plan, positions (V, 3), viewing arrows (V, 3) in metres and the (lo, hi, span) extent.
+
+    The arrows are 4 % of the extent of flight and mesh long unless ``arrow_length_m`` is given.
+    """
+    viewpoints, kinds = _check_plan(viewpoints, kinds)
+    lo, hi = _flight_extent(viewpoints, mesh)
+    span = np.maximum(hi - lo, 1e-6)
+    if arrow_length_m is None:
+        arrow_length_m = 0.04 * float(np.linalg.norm(span))
+    directions = forward_vectors(viewpoints[:, 3], viewpoints[:, 4]) * arrow_length_m
+    return viewpoints, kinds, viewpoints[:, :3], directions, (lo, hi, span)
+
+
 def draw_flight_3d(ax, viewpoints, kinds, mesh=None, arrow_length_m: float | None = None, mesh_label="scene"):
     """Draw a flight on a 3-D axes: light mesh, trajectory, one scatter and one quiver per kind.
 
@@ -136,13 +150,9 @@ def draw_flight_3d(ax, viewpoints, kinds, mesh=None, arrow_length_m: float | Non
         arrow_length_m: arrow length in metres (default: 4 % of the extent of flight and mesh).
         mesh_label: label of the mesh collection.
     """
-    viewpoints, kinds = _check_plan(viewpoints, kinds)
-    positions = viewpoints[:, :3]
-    lo, hi = _flight_extent(viewpoints, mesh)
-    span = np.maximum(hi - lo, 1e-6)
-    if arrow_length_m is None:
-        arrow_length_m = 0.04 * float(np.linalg.norm(span))
-    directions = forward_vectors(viewpoints[:, 3], viewpoints[:, 4]) * arrow_length_m
+    viewpoints, kinds, positions, directions, (lo, hi, span) = _flight_geometry(
+        viewpoints, kinds, mesh, arrow_length_m
+    )
     if mesh is not None and len(mesh.faces):
         triangles = np.asarray(mesh.vertices)[np.asarray(mesh.faces)]
         # Lambertian grey under a light from the upper south-west, so walls and roofs read apart.
@@ -180,13 +190,9 @@ def draw_flight_3d(ax, viewpoints, kinds, mesh=None, arrow_length_m: float | Non
 def draw_flight_top(ax, viewpoints, kinds, mesh=None, arrow_length_m: float | None = None):
     """Draw a flight seen from above (x right, y up): mesh shaded by height, trajectory, scatter and
     arrows (the horizontal part of each viewing direction) per kind. Arguments as ``draw_flight_3d``."""
-    viewpoints, kinds = _check_plan(viewpoints, kinds)
-    positions = viewpoints[:, :3]
-    lo, hi = _flight_extent(viewpoints, mesh)
-    span = np.maximum(hi - lo, 1e-6)
-    if arrow_length_m is None:
-        arrow_length_m = 0.04 * float(np.linalg.norm(span))
-    directions = forward_vectors(viewpoints[:, 3], viewpoints[:, 4]) * arrow_length_m
+    viewpoints, kinds, positions, directions, (lo, hi, span) = _flight_geometry(
+        viewpoints, kinds, mesh, arrow_length_m
+    )
     if mesh is not None and len(mesh.faces):
         vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
         heights = vertices[faces, 2].mean(axis=1)
