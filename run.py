@@ -66,7 +66,9 @@ def planner_params(cfg: DictConfig) -> DictConfig:
     each planner has parameters of its own.
     """
     overrides = OmegaConf.select(cfg, f"experiment.planner_overrides.{cfg.planner.name}")
-    return OmegaConf.merge(cfg.planner, overrides) if overrides else cfg.planner
+    # Resolved first: planner settings interpolate run-level values (``${survey.target_gsd_m}``).
+    params = OmegaConf.create(OmegaConf.to_container(cfg.planner, resolve=True))
+    return OmegaConf.merge(params, overrides) if overrides else params
 
 
 def run_cell(cfg: DictConfig, run_dir: Path, record: dict) -> None:

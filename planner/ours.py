@@ -45,7 +45,7 @@ from scene.camera import Intrinsics
 
 DEFAULTS: dict = {
     "n_points": 2048,
-    "target_gsd_m": 0.015,
+    "target_gsd_m": 0.03,
     "heuristics": {
         "k_count": 3,
         "distance_tolerance": 0.2,

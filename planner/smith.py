@@ -1,8 +1,8 @@
 """Smith et al. 2018 ("Aerial path planning for urban scene reconstruction", ACM TOG 37(6)) baseline.
 
-1. Initial flight: a regular grid at 80 % front and side overlap (nadir footprint on flat ground)
-   flown at the structure top + the minimum distance: one nadir pass and two oblique passes (lines
-   along x, then along y, the camera tilted forward, so alternating lines look both ways).
+1. Initial flight: a regular grid at 80 % front and side overlap (measured on the structure top)
+   flown at the target-GSD distance above the structure top: one nadir pass and two oblique passes
+   (lines along x, then along y, the camera tilted forward, so alternating lines look both ways).
 2. Optimisation (the public code's ``optimize_trajectory``): every view keeps its own Nelder-Mead
    simplex over its 3-D position (reflection 1, expansion 2, contractions 0.5, shrink 0.5; initial
    simplex a randomly rotated regular tetrahedron of size 0.05 x min_distance). The value of a trial
@@ -15,7 +15,8 @@
    Nelder-Mead step for all of them at once (vectorised: the steps' trial positions are evaluated
    in batches) and puts their new observations back. A view whose best step gains nothing is moved
    towards the scene centre and its simplex restarted. The loop ends when every budget is spent or
-   the objective improved by less than 1e-4 x h_target over the last ``convergence_window`` rounds.
+   the objective improved by less than 1e-4 x h_target over the last ``convergence_window`` sweeps
+   (a sweep: as many single-view steps as there are views).
 3. The views are ordered by a travelling-salesman path (``planner.trajectory``).
 """
 
@@ -58,13 +59,15 @@ DEFAULTS = {
     "h_unobserved": H_UNOBSERVED,
     "front_overlap": 0.8,
     "side_overlap": 0.8,
+    "target_gsd_m": 0.03,
     "grid_altitude_above_top_m": None,
+    "overlap_reference": "top",
     "grid_margin_m": 0.0,
     "oblique_pitch_deg": -45.0,
     "max_iters": 100,
     "simplex_size_factor": 0.05,
     "parallel_separation_m": None,
-    "convergence_window": 100,
+    "convergence_window": 10,
     "convergence_tol": 1e-4,
     "restart_fraction": 0.25,
     "n_yaw": 128,
@@ -88,6 +91,12 @@ def _merged(params: Mapping | None) -> dict:
             f"smith: need 0 <= min_distance_m < max_distance_m, got {merged['min_distance_m']}, "
             f"{merged['max_distance_m']}"
         )
+    if merged["overlap_reference"] not in ("top", "ground"):
+        raise ValueError(
+            f"smith: overlap_reference must be 'top' or 'ground', got {merged['overlap_reference']!r}"
+        )
+    if merged["grid_altitude_above_top_m"] is None and not float(merged["target_gsd_m"]) > 0.0:
+        raise ValueError(f"smith: target_gsd_m must be > 0, got {merged['target_gsd_m']}")
     if int(merged["max_iters"]) < 1 or int(merged["n_samples"]) < 1 or int(merged["max_rays"]) < 2:
         raise ValueError("smith: max_iters and n_samples must be >= 1 and max_rays >= 2")
     return merged
@@ -96,18 +105,27 @@ def _merged(params: Mapping | None) -> dict:
 def initial_grid(bounds: Box, intrinsics: Intrinsics, params: Mapping) -> tuple[np.ndarray, list[str]]:
     """Smith's initial flight: one nadir and two oblique grid passes over the structure.
 
+    The grid flies ``grid_altitude_above_top_m`` above the structure top (None: the target distance
+    of ``target_gsd_m``, the GSD every planner of a study shares). The front / side overlaps hold
+    on the structure top (``overlap_reference: top``, where a nadir grid's matches are) or on the
+    ground (``ground``, the flat-terrain rule of survey apps, which starves tall structures).
+
     Args:
         bounds: box around the structure (m).
         intrinsics: the camera.
-        params: merged smith parameters (overlaps, ``grid_altitude_above_top_m``, ``grid_margin_m``,
-            ``oblique_pitch_deg``, ``min_distance_m``).
+        params: merged smith parameters (overlaps, ``target_gsd_m``, ``grid_altitude_above_top_m``,
+            ``overlap_reference``, ``grid_margin_m``, ``oblique_pitch_deg``).
 
     Returns:
         viewpoints (V, 5) and their kinds (``nadir`` / ``oblique``).
     """
     above = params["grid_altitude_above_top_m"]
-    altitude = float(bounds.hi[2]) + float(params["min_distance_m"] if above is None else above)
-    across_w, along_l = footprint_m(intrinsics, altitude)
+    if above is None:
+        above = intrinsics.distance_for_gsd(float(params["target_gsd_m"]))
+    top = float(bounds.hi[2])
+    altitude = top + float(above)
+    reference = top if params["overlap_reference"] == "top" else float(bounds.lo[2])
+    across_w, along_l = footprint_m(intrinsics, altitude - reference)
     spacing_along = (1.0 - float(params["front_overlap"])) * along_l
     spacing_across = (1.0 - float(params["side_overlap"])) * across_w
     margin = float(params["grid_margin_m"])
@@ -402,6 +420,10 @@ def optimise(
 
     stepper = NelderMeadStepper(evaluate)
     history = [objective.objective()]
+    # The window counts sweeps (as many single-view steps as there are views): with views stepped
+    # only when d_max apart, a round on a small scene moves one view, and a window of rounds would
+    # stop after a few steps per view.
+    per_sweep = [history[0]]
     window = int(params["convergence_window"])
     tol = float(params["convergence_tol"]) * objective.h_target
     restarts = steps = rounds = 0
@@ -439,11 +461,14 @@ def optimise(
         steps += len(chosen)
         rounds += 1
         bar.update(len(chosen))
-        if rounds > window and history[-1 - window] - history[-1] < tol:
-            break
+        if steps >= len(per_sweep) * n_views:
+            per_sweep.append(history[-1])
+            if len(per_sweep) > window and per_sweep[-1 - window] - per_sweep[-1] < tol:
+                break
     bar.close()
     return {
         "objective_per_round": history,
+        "objective_per_sweep": per_sweep,
         "rounds": rounds,
         "steps": steps,
         "restarts": restarts,
@@ -508,7 +533,8 @@ def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: 
         "n_initial_views": int(len(viewpoints)),
         "objective_initial": initial_objective,
         "objective_final": objective.objective(),
-        "objective_history": record.pop("objective_per_round"),
+        "objective_per_sweep": record.pop("objective_per_sweep"),
+        "objective_per_round_last": record.pop("objective_per_round")[-1],
         "optimisation": record,
         "rays_cast": model.rays_cast,
     }

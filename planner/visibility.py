@@ -290,6 +290,13 @@ class VisibilityModel:
         hit = self._scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=1.0 - 1e-4)
         return hit.numpy().astype(bool)
 
+    def closest_points(self, positions: np.ndarray) -> np.ndarray:
+        """(N, 3) closest proxy surface points in metres of positions (N, 3)."""
+        q = np.asarray(positions, dtype=np.float32).reshape(-1, 3)
+        if len(q) == 0:
+            return np.zeros((0, 3))
+        return self._scene.compute_closest_points(o3d.core.Tensor(q))["points"].numpy().astype(float)
+
     def clearance(self, positions: np.ndarray) -> np.ndarray:
         """(N,) distance in metres from each position (N, 3) to the nearest proxy surface."""
         q = np.asarray(positions, dtype=np.float32).reshape(-1, 3)

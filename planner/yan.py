@@ -48,7 +48,8 @@ from scene.camera import Intrinsics, yaw_pitch_from_direction
 
 DEFAULTS = {
     "n_samples": 4000,
-    "target_distance_m": 10.0,
+    "target_gsd_m": 0.03,
+    "target_distance_m": None,
     "d_min_ratio": 25.0 / 30.0,
     "d_max_ratio": 35.0 / 30.0,
     "theta_t_deg": 60.0,
@@ -81,7 +82,10 @@ def _merged(params: Mapping | None) -> dict:
             "yan: need 0 < d_min_ratio < 1 < d_max_ratio, got "
             f"{merged['d_min_ratio']}, {merged['d_max_ratio']}"
         )
-    if not float(merged["target_distance_m"]) > 0.0:
+    if merged["target_distance_m"] is None:
+        if not float(merged["target_gsd_m"]) > 0.0:
+            raise ValueError(f"yan: target_gsd_m must be > 0, got {merged['target_gsd_m']}")
+    elif not float(merged["target_distance_m"]) > 0.0:
         raise ValueError(f"yan: target_distance_m must be > 0, got {merged['target_distance_m']}")
     if not 0.0 < float(merged["theta_t_deg"]) < 90.0:
         raise ValueError(f"yan: theta_t_deg must lie in (0, 90), got {merged['theta_t_deg']}")
@@ -92,9 +96,14 @@ def _merged(params: Mapping | None) -> dict:
     return merged
 
 
-def distance_limits(params: Mapping) -> tuple[float, float, float]:
-    """(d_min, d_opt, d_max) in metres: the view-sampling band around the target distance."""
-    d_opt = float(params["target_distance_m"])
+def distance_limits(params: Mapping, intrinsics: Intrinsics) -> tuple[float, float, float]:
+    """(d_min, d_opt, d_max) in metres: the view-sampling band around the target distance.
+
+    d_opt is ``target_distance_m`` when given, else the distance at which the camera images at
+    ``target_gsd_m`` (m/px), the GSD every planner of a study shares.
+    """
+    d_opt = params["target_distance_m"]
+    d_opt = intrinsics.distance_for_gsd(float(params["target_gsd_m"])) if d_opt is None else float(d_opt)
     return float(params["d_min_ratio"]) * d_opt, d_opt, float(params["d_max_ratio"]) * d_opt
 
 
@@ -129,7 +138,7 @@ def view_sampling_space(model: VisibilityModel, proxy: trimesh.Trimesh, params: 
     Voxels below ``min_altitude_m`` and voxels whose sky is blocked by the proxy (inside or under
     the structure) belong to the no-fly space.
     """
-    d_min, _, d_max = distance_limits(params)
+    d_min, _, d_max = distance_limits(params, model.intrinsics)
     step = float(params["voxel_size_m"])
     lo = proxy.bounds[0] - d_max
     hi = proxy.bounds[1] + d_max
@@ -158,18 +167,6 @@ def view_sampling_space(model: VisibilityModel, proxy: trimesh.Trimesh, params: 
             f"{d_max:.2f}] m above min_altitude_m = {params['min_altitude_m']} m is empty"
         )
     return inside
-
-
-def closest_points(model: VisibilityModel, positions: np.ndarray) -> np.ndarray:
-    """(N, 3) closest proxy surface points of positions (N, 3), in metres.
-
-    Uses the visibility model's Open3D ray-casting scene (no second copy of the proxy); the model
-    has no public closest-point query yet.
-    """
-    import open3d as o3d
-
-    query = o3d.core.Tensor(np.asarray(positions, dtype=np.float32).reshape(-1, 3))
-    return model._scene.compute_closest_points(query)["points"].numpy().astype(float)
 
 
 def aim(positions: np.ndarray, targets: np.ndarray, pitch_min: float, pitch_max: float) -> np.ndarray:
@@ -350,7 +347,7 @@ def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: 
     validate_proxy(proxy)
     rng = np.random.default_rng(seed)
     timings: dict[str, float] = {}
-    d_min, d_opt, d_max = distance_limits(p)
+    d_min, d_opt, d_max = distance_limits(p, intrinsics)
     pitch_lim = (float(p["pitch_min_deg"]), float(p["pitch_max_deg"]))
 
     t0 = time.perf_counter()
@@ -367,7 +364,7 @@ def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: 
     jitter = (rng.random((n_cand, 3)) - 0.5) * float(p["voxel_size_m"])
     positions = space[pick] + jitter
     positions[:, 2] = np.maximum(positions[:, 2], float(p["min_altitude_m"]))
-    candidates = aim(positions, closest_points(model, positions), *pitch_lim)
+    candidates = aim(positions, model.closest_points(positions), *pitch_lim)
     timings["candidates"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()

@@ -260,6 +260,21 @@ def proxy_bounds(sparse_dir: Path, margin_m: float) -> Box:
     return Box(tuple(lo.tolist()), tuple(hi.tolist())).expanded(margin_m, margin_m, margin_m)
 
 
+def proxy_flight_config(cfg: Mapping) -> dict:
+    """The ``reconstruct`` config for the exploratory flight: ``proxy.dense`` overrides ``dense``.
+
+    The proxy is meshed from a cloud voxelised at ``proxy.voxel_size_m``, so its depth maps need not
+    be computed at the scored flights' resolution (``proxy.dense.max_image_size``).
+    """
+    plain = _plain(cfg)
+    overrides = plain["proxy"].get("dense") or {}
+    unknown = sorted(set(overrides) - set(plain["dense"]))
+    if unknown:
+        raise ValueError(f"reconstruct.proxy.dense: unknown dense settings {unknown}")
+    plain["dense"] = {**plain["dense"], **overrides}
+    return plain
+
+
 def build_proxy(image_dir, cache_dir, cfg: Mapping, seed: int) -> tuple[trimesh.Trimesh, dict]:
     """Reconstruct the exploratory flight and mesh its dense cloud into the planners' proxy.
 
@@ -279,7 +294,7 @@ def build_proxy(image_dir, cache_dir, cfg: Mapping, seed: int) -> tuple[trimesh.
     """
     cache_dir = Path(cache_dir)
     pcfg = cfg["proxy"]
-    recon = reconstruct_flight(image_dir, cache_dir, cfg, seed)
+    recon = reconstruct_flight(image_dir, cache_dir, proxy_flight_config(cfg), seed)
     min_fraction = float(pcfg["min_registered_fraction"])
     if recon["registered_fraction"] < min_fraction:
         raise ReconstructionError(

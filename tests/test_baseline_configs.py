@@ -11,9 +11,18 @@ import yaml
 CONF = Path(__file__).resolve().parents[1] / "conf"
 
 
+def resolve_survey(cfg: dict) -> dict:
+    """The planner config with ``${survey.*}`` interpolations replaced by conf/config.yaml's values."""
+    survey = yaml.safe_load((CONF / "config.yaml").read_text())["survey"]
+    return {
+        k: survey[v[len("${survey.") : -1]] if isinstance(v, str) and v.startswith("${survey.") else v
+        for k, v in cfg.items()
+    }
+
+
 @pytest.mark.parametrize("name", ["lawnmower", "smith", "yan"])
 def test_planner_config_matches_code_defaults(name):
-    cfg = yaml.safe_load((CONF / "planner" / f"{name}.yaml").read_text())
+    cfg = resolve_survey(yaml.safe_load((CONF / "planner" / f"{name}.yaml").read_text()))
     module = importlib.import_module(f"planner.{name}")
     assert cfg.pop("name") == name
     assert cfg.pop("_target_") == f"planner.{name}.plan"

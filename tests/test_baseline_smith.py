@@ -13,6 +13,7 @@ from planner.base import read_viewpoints, write_plan
 from planner.smith_directions import DirectionSearch
 from planner.smith_heuristic import objective_terms, pair_terms, reconstructability
 from planner.visibility import VisibilityLimits, VisibilityModel
+from scene.base import Box
 from scene.camera import Intrinsics, forward_vectors, look_at, project_points
 
 CAMERA = Intrinsics(1024, 768, 60.0)
@@ -136,7 +137,15 @@ def test_nelder_mead_stage_lowers_objective_on_a_toy_proxy(tmp_path):
     building = trimesh.creation.box(extents=(12.0, 8.0, 6.0))
     building.apply_translation((0, 0, 3.0))
     proxy = trimesh.util.concatenate([flat_ground(60.0), building])
-    params = {"n_samples": 400, "max_iters": 3, "n_yaw": 64, "n_pitch": 23, "progress": False}
+    params = {
+        "n_samples": 400,
+        "max_iters": 3,
+        "n_yaw": 64,
+        "n_pitch": 23,
+        "progress": False,
+        "grid_altitude_above_top_m": 5.0,
+        "overlap_reference": "ground",
+    }
     plan = smith.plan(proxy, CAMERA, params, seed=0)
     info = plan.info
     assert info["optimisation"]["steps"] > 0
@@ -156,6 +165,25 @@ def test_nelder_mead_stage_lowers_objective_on_a_toy_proxy(tmp_path):
     assert kinds == plan.kinds
 
 
+@pytest.mark.parametrize("reference", ["top", "ground"])
+def test_initial_grid_flies_at_the_target_gsd_with_the_overlap_on_the_reference(reference):
+    bounds = Box((-20.0, -15.0, 0.0), (20.0, 15.0, 12.0))
+    params = smith._merged({"target_gsd_m": 0.02, "overlap_reference": reference})
+    vps, kinds = smith.initial_grid(bounds, CAMERA, params)
+    d_t = 0.02 * CAMERA.focal_px
+    np.testing.assert_allclose(vps[:, 2], 12.0 + d_t)
+    distance = d_t if reference == "top" else 12.0 + d_t
+    along = distance * CAMERA.height / CAMERA.focal_px  # nadir footprint along the lines (m)
+    across = distance * CAMERA.width / CAMERA.focal_px
+    nadir = vps[np.array(kinds) == "nadir"]
+    lines = np.unique(np.round(nadir[:, 1], 6))
+    first_line = np.sort(nadir[np.isclose(nadir[:, 1], lines[0]), 0])
+    front = 1.0 - np.diff(first_line).max() / along
+    side = 1.0 - np.diff(lines).max() / across
+    assert 0.8 - 1e-6 <= front <= 0.82 and 0.8 - 1e-6 <= side <= 0.82
+    assert kinds.count("oblique") > kinds.count("nadir")
+
+
 def test_bad_settings_are_refused_by_name():
     with pytest.raises(ValueError, match="front_overlap"):
         smith._merged({"front_overlap": 1.0})
@@ -163,3 +191,7 @@ def test_bad_settings_are_refused_by_name():
         smith._merged({"min_distance_m": 60.0})
     with pytest.raises(ValueError, match="unknown"):
         smith._merged({"h_targt": 3})
+    with pytest.raises(ValueError, match="overlap_reference"):
+        smith._merged({"overlap_reference": "roof"})
+    with pytest.raises(ValueError, match="target_gsd_m"):
+        smith._merged({"target_gsd_m": 0.0})

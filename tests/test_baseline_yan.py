@@ -81,14 +81,20 @@ def test_quality_is_one_on_a_plane_and_lowest_at_box_edges():
 
 def test_selection_covers_the_configured_fraction_of_samples(tmp_path):
     proxy = toy_proxy()
-    params = {"n_samples": 600, "n_candidates": 3000, "progress": False, "min_coverage": 0.95}
+    params = {
+        "n_samples": 600,
+        "n_candidates": 3000,
+        "progress": False,
+        "min_coverage": 0.95,
+        "target_distance_m": 10.0,
+    }
     plan = yan.plan(proxy, CAMERA, params, seed=0)
     info = plan.info
     assert info["fraction_coverable_covered"] >= 0.95
     assert info["fraction_coverable"] > 0.8
     # Independent recount on the final flight.
     points, normals = yan.sample_surface(proxy, 600, 0)
-    d_min, d_opt, d_max = yan.distance_limits(yan._merged(params))
+    d_min, d_opt, d_max = yan.distance_limits(yan._merged(params), CAMERA)
     model = VisibilityModel(proxy, points, normals, CAMERA, VisibilityLimits(d_min, d_max, 85.0))
     counts = np.asarray((yan.view_scores(model, plan.viewpoints, d_min, d_opt, 60.0, 500) >= 0.1).sum(axis=0))
     assert np.mean(counts.ravel() >= 2) == pytest.approx(info["fraction_observed_min"])
@@ -104,10 +110,18 @@ def test_selection_covers_the_configured_fraction_of_samples(tmp_path):
     assert kinds == plan.kinds
 
 
+def test_target_distance_follows_the_shared_gsd():
+    # d_opt = GSD x focal (1024 px, 60 deg: focal 886.8 px); an explicit target_distance_m wins.
+    d_min, d_opt, d_max = yan.distance_limits(yan._merged({"target_gsd_m": 0.03}), CAMERA)
+    assert d_opt == pytest.approx(0.03 * 512.0 / math.tan(math.radians(30.0)), rel=1e-9)
+    assert (d_min, d_max) == pytest.approx((25.0 / 30.0 * d_opt, 35.0 / 30.0 * d_opt), rel=1e-9)
+    assert yan.distance_limits(yan._merged({"target_distance_m": 12.0}), CAMERA)[1] == 12.0
+
+
 def test_view_sampling_space_lies_in_the_distance_band():
     proxy = toy_proxy()
-    p = yan._merged({"voxel_size_m": 2.0})
-    d_min, _, d_max = yan.distance_limits(p)
+    p = yan._merged({"voxel_size_m": 2.0, "target_distance_m": 10.0})
+    d_min, _, d_max = yan.distance_limits(p, CAMERA)
     model = VisibilityModel(
         proxy, np.zeros((1, 3)), np.array([[0, 0, 1.0]]), CAMERA, VisibilityLimits(1, 20, 85)
     )
@@ -121,6 +135,7 @@ def test_view_sampling_space_lies_in_the_distance_band():
     "params,setting",
     [
         ({"target_distance_m": 0.0}, "target_distance_m"),
+        ({"target_gsd_m": -0.01}, "target_gsd_m"),
         ({"d_min_ratio": 1.2}, "d_min_ratio"),
         ({"theta_t_deg": 95.0}, "theta_t_deg"),
         ({"n_sample": 5}, "unknown"),
@@ -133,4 +148,9 @@ def test_bad_settings_are_refused_by_name(params, setting):
 
 def test_no_valid_position_is_a_clear_error():
     with pytest.raises(PlanningError, match="min_altitude_m"):
-        yan.plan(toy_proxy(), CAMERA, {"min_altitude_m": 500.0, "progress": False}, seed=0)
+        yan.plan(
+            toy_proxy(),
+            CAMERA,
+            {"min_altitude_m": 500.0, "progress": False, "target_distance_m": 10.0},
+            seed=0,
+        )

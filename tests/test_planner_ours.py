@@ -74,6 +74,10 @@ def added(scene):
 
 def test_config_file_matches_defaults():
     cfg = yaml.safe_load((ROOT / "conf" / "planner" / "ours.yaml").read_text())
+    # the shared target GSD is interpolated from the run config
+    assert cfg["target_gsd_m"] == "${survey.target_gsd_m}"
+    survey = yaml.safe_load((ROOT / "conf" / "config.yaml").read_text())["survey"]
+    cfg["target_gsd_m"] = survey["target_gsd_m"]
     assert cfg.pop("name") == "ours" and cfg.pop("_target_") == "planner.ours.plan"
     assert cfg == DEFAULTS
 
