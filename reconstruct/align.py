@@ -79,6 +79,30 @@ def align_to_gnss(
     return world_from_model
 
 
+def deregister_gnss_outliers(
+    reconstruction: pycolmap.Reconstruction, names, gnss_positions: np.ndarray, max_error_m: float
+) -> list[str]:
+    """De-register the aligned cameras farther than ``max_error_m`` metres from their GNSS position.
+
+    After the similarity alignment, a camera that far from its own GNSS fix was registered at a
+    wrong place (repeated texture, a false loop): its depth map would only add outliers. A surveyor
+    with RTK positions would drop it the same way. Returns the names of the de-registered images.
+    """
+    position_by_name = {str(n): np.asarray(p, float) for n, p in zip(names, gnss_positions, strict=True)}
+    dropped = []
+    for image_id in list(reconstruction.reg_image_ids()):
+        image = reconstruction.image(image_id)
+        gnss = position_by_name.get(image.name)
+        if gnss is not None and np.linalg.norm(image.projection_center() - gnss) > max_error_m:
+            dropped.append(image.name)
+            reconstruction.deregister_frame(image.frame_id)
+    if dropped:
+        log.info(
+            "de-registered %d cameras farther than %.2f m from their GNSS fix", len(dropped), max_error_m
+        )
+    return dropped
+
+
 def _apply_sim3d(sim: pycolmap.Sim3d, points: np.ndarray) -> np.ndarray:
     matrix = np.asarray(sim.matrix())
     return points @ matrix[:, :3].T + matrix[:, 3]

@@ -30,7 +30,7 @@ import numpy as np
 import pycolmap
 import trimesh
 
-from reconstruct.align import align_to_gnss, pose_errors
+from reconstruct.align import align_to_gnss, deregister_gnss_outliers, pose_errors
 from reconstruct.dense import dense_reconstruct
 from reconstruct.errors import ReconstructionError
 from reconstruct.flight import CAMERAS_FILE, Flight, read_flight, simulate_gnss
@@ -198,8 +198,19 @@ def _reconstruct(
         )
     start = time.perf_counter()
     align_to_gnss(rec, flight.names, gnss, sigma, cfg["align"], seed)
+    acfg = cfg["align"]
+    max_error = max(float(acfg["deregister_error_sigmas"]) * sigma, float(acfg["min_error_m"]))
+    dropped = deregister_gnss_outliers(rec, flight.names, gnss, max_error)
     record["similarity_time_s"] = time.perf_counter() - start
+    record |= {"n_gnss_outliers": len(dropped), "n_registered_before_gnss_check": n_reg}
     record |= pose_errors(rec, flight)
+    if record["registered_fraction"] < min_fraction:
+        raise ReconstructionError(
+            f"{flight.image_dir}: {len(dropped)} of {n_reg} registered cameras lie farther than "
+            f"{max_error:.2f} m from their GNSS fix; {record['n_registered']} of {len(flight)} remain "
+            f"({record['registered_fraction']:.1%} < reconstruct.min_registered_fraction {min_fraction:.0%})",
+            {"stage": "align"},
+        )
     log.info(
         "registered %d/%d, camera position error median %.3f m (p90 %.3f m), rotation %.3f deg",
         n_reg,

@@ -19,7 +19,7 @@ import pytest
 import trimesh
 from omegaconf import OmegaConf
 
-from reconstruct.align import align_to_gnss, pose_errors
+from reconstruct.align import align_to_gnss, deregister_gnss_outliers, pose_errors
 from reconstruct.dense import View, consistent_depth, fuse, normals_from_depth, pair_depth, write_maps
 from reconstruct.errors import ReconstructionError
 from reconstruct.flight import Flight, simulate_gnss
@@ -346,6 +346,14 @@ def test_mapping_and_alignment_on_a_synthetic_dataset(tmp_path):
         # the truth than the GNSS positions themselves (the relative poses are exact).
         assert errors["position_error_median_m"] < 0.5 * gnss_error_median, method
         assert errors["rotation_error_max_deg"] < 0.5, method
+    # A camera 5 m from its GNSS fix (here: a gross fix) is de-registered; the others stay.
+    moved = gnss.copy()
+    moved[7] += [5.0, 0.0, 0.0]
+    threshold = 20.0 * sigma
+    assert np.linalg.norm(gnss - flight.positions, axis=1).max() + 0.5 * gnss_error_median < threshold < 5.0
+    assert deregister_gnss_outliers(rec, flight.names, moved, threshold) == [flight.names[7]]
+    assert rec.num_reg_images() == 29
+    assert flight.names[7] not in {rec.image(i).name for i in rec.reg_image_ids()}
 
 
 @pytest.fixture(scope="module")
