@@ -107,7 +107,32 @@ def prepare_workspace(sparse_dir: Path, image_dir: Path, workspace: Path, cfg: M
     pycolmap.undistort_images(
         workspace, sparse_dir, image_dir, output_type="COLMAP", undistort_options=options
     )
+    _match_cameras_to_images(workspace)
     return workspace
+
+
+def _match_cameras_to_images(workspace: Path) -> None:
+    """Rescale the workspace's cameras to the size of their undistorted images.
+
+    COLMAP 3.13 / pycolmap 4.0.4's undistorter downsizes every image to ``max_image_size`` but
+    leaves cameras that need no undistortion (PINHOLE, like the simulated survey camera) at their
+    old size in ``sparse/``: depth maps computed from that model would be scaled wrongly.
+    """
+    rec = pycolmap.Reconstruction(workspace / "sparse")
+    sizes = {}
+    for image in rec.images.values():
+        if image.camera_id not in sizes:
+            bitmap = cv2.imread(str(workspace / "images" / image.name), cv2.IMREAD_UNCHANGED)
+            if bitmap is None:
+                raise ValueError(f"{workspace / 'images' / image.name}: unreadable undistorted image")
+            sizes[image.camera_id] = (bitmap.shape[1], bitmap.shape[0])
+    stale = {
+        cid: size for cid, size in sizes.items() if size != (rec.camera(cid).width, rec.camera(cid).height)
+    }
+    for camera_id, (width, height) in stale.items():
+        rec.camera(camera_id).rescale(width, height)
+    if stale:
+        rec.write(workspace / "sparse")
 
 
 def read_views(workspace: Path) -> dict[str, View]:
@@ -468,7 +493,15 @@ def compute_depth_maps_cpu(workspace: Path, cfg: Mapping) -> dict[str, int]:
 
 
 def compute_depth_maps_cuda(workspace: Path, cfg: Mapping) -> dict[str, int]:
-    """CUDA back-end: ``pycolmap.patch_match_stereo`` with geometric consistency."""
+    """CUDA back-end: ``pycolmap.patch_match_stereo`` with geometric consistency.
+
+    Source views come from the workspace's ``stereo/patch-match.cfg`` (the undistorter writes
+    ``__auto__, 20``). Returns 1 for every view that got a geometric depth map.
+    """
+    stereo = Path(workspace) / "stereo"
+    # COLMAP only logs (does not raise) when it cannot write a map into a missing folder.
+    for folder in ("depth_maps", "normal_maps", "consistency_graphs"):
+        (stereo / folder).mkdir(parents=True, exist_ok=True)
     pcfg = cfg["patch_match"]
     options = pycolmap.PatchMatchOptions()
     options.max_image_size = int(cfg["max_image_size"])
@@ -477,8 +510,7 @@ def compute_depth_maps_cuda(workspace: Path, cfg: Mapping) -> dict[str, int]:
     options.geom_consistency = True
     options.min_triangulation_angle = float(cfg["min_triangulation_angle_deg"])
     pycolmap.patch_match_stereo(workspace, workspace_format="COLMAP", options=options)
-    depth_dir = Path(workspace) / "stereo" / "depth_maps"
-    return {p.name[: -len(DEPTH_SUFFIX)]: 1 for p in depth_dir.glob(f"*{DEPTH_SUFFIX}")}
+    return {p.name[: -len(DEPTH_SUFFIX)]: 1 for p in (stereo / "depth_maps").glob(f"*{DEPTH_SUFFIX}")}
 
 
 def fuse(workspace: Path, output_ply: Path, cfg: Mapping, names) -> int:

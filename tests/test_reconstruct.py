@@ -20,7 +20,15 @@ import trimesh
 from omegaconf import OmegaConf
 
 from reconstruct.align import align_to_gnss, deregister_gnss_outliers, pose_errors
-from reconstruct.dense import View, consistent_depth, fuse, normals_from_depth, pair_depth, write_maps
+from reconstruct.dense import (
+    View,
+    consistent_depth,
+    fuse,
+    normals_from_depth,
+    pair_depth,
+    prepare_workspace,
+    write_maps,
+)
 from reconstruct.errors import ReconstructionError
 from reconstruct.flight import Flight, simulate_gnss
 from reconstruct.pipeline import build_proxy, flight_content_key, reconstruct_flight
@@ -395,6 +403,22 @@ def test_reconstruct_flight_registers_aligns_and_densifies(box_reconstruction):
     # 5 cm GNSS: 90 % of the fused points within 2 GSD of the true surface, half within 1 GSD.
     assert np.percentile(distance, 90) < 0.08
     assert np.median(distance) < 0.04
+
+
+def test_downsized_workspace_cameras_match_their_images(box_flight, box_reconstruction, tmp_path):
+    """The undistorter downsizes images to max_image_size; the workspace's cameras must follow."""
+    _, record = box_reconstruction
+    workspace = prepare_workspace(
+        Path(record["sparse_dir"]), box_flight, tmp_path / "ws", {"max_image_size": 200}
+    )
+    rec = pycolmap.Reconstruction(workspace / "sparse")
+    focal_320 = Intrinsics(320, 240, 60.0).focal_px
+    for image in rec.images.values():
+        camera = rec.camera(image.camera_id)
+        height, width = cv2.imread(str(workspace / "images" / image.name)).shape[:2]
+        assert (camera.width, camera.height) == (width, height) == (200, 150)
+        assert camera.params[0] == pytest.approx(focal_320 * 200 / 320, rel=1e-3)
+        assert camera.params[2] == pytest.approx(100.0, abs=0.5)
 
 
 def test_reconstruct_flight_reuses_unchanged_outputs(box_flight, box_reconstruction):
