@@ -127,9 +127,11 @@ def main(cfg: DictConfig) -> None:
     }
     log.info("run directory: %s", run_dir)
     write_metrics = stage("evaluate.record", "write_metrics")
+    start = time.perf_counter()
     try:
         run_cell(cfg, run_dir, record)
     except Exception as exc:
+        record["cell_wall_time_s"] = time.perf_counter() - start
         failed_stage = record.pop("stage", "?")
         record.update(status="failed", failed_stage=failed_stage, error=f"{type(exc).__name__}: {exc}")
         record.update(getattr(exc, "record", {}) or {})
@@ -138,6 +140,7 @@ def main(cfg: DictConfig) -> None:
         raise CellFailed(f"{failed_stage}: {exc}") from exc
     record.pop("stage", None)
     record["status"] = "ok"
+    record["cell_wall_time_s"] = time.perf_counter() - start  # proxy included unless it was cached
     write_metrics(run_dir, record, cfg=OmegaConf.to_container(cfg, resolve=True))
     log.info("metrics: %s", run_dir / "metrics.json")
 

@@ -47,6 +47,8 @@ def test_every_cell_scores_finite_numbers(smoke_sweep):
         assert 0.0 < r["acc90_m"] <= r["acc95_m"]
         assert 0.0 <= r["comp_050"] <= r["comp_075"] <= 100.0
         assert r["n_images"] == r["n_viewpoints"] > 0
+        stages = ("plan_time_s", "render_time_s", "align_time_s", "dense_time_s", "eval_total_time_s")
+        assert r["cell_wall_time_s"] >= sum(r[k] for k in stages)
         assert r["registered_fraction"] == pytest.approx(r["n_registered"] / r["n_images"])
         assert r["registered_fraction"] >= 0.2  # conf/reconstruct/default.yaml: min_registered_fraction
         run_dir = Path(r["eval_dir"]).parent
