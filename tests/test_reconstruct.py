@@ -31,7 +31,7 @@ from reconstruct.dense import (
 )
 from reconstruct.errors import ReconstructionError
 from reconstruct.flight import Flight, simulate_gnss
-from reconstruct.pipeline import build_proxy, flight_content_key, reconstruct_flight
+from reconstruct.pipeline import build_proxy, flight_content_key, proxy_flight_config, reconstruct_flight
 from reconstruct.proxy import degraded_ground_truth, poisson_proxy
 from reconstruct.sfm import map_reconstruction, sfm_options
 from scene.base import Box, MeshPart, Scene
@@ -440,7 +440,8 @@ def test_reconstruct_flight_reuses_unchanged_outputs(box_flight, box_reconstruct
 
 def test_build_proxy_covers_the_boxes_and_refuses_partial_models(box_flight, box_reconstruction, tmp_path):
     out_dir, _ = box_reconstruction
-    cfg = reconstruct_cfg(**{"proxy.face_budget": 20000})
+    # No proxy-only dense settings: the exploratory flight's reconstruction is the fixture's, reused.
+    cfg = reconstruct_cfg(**{"proxy.face_budget": 20000, "proxy.dense": {}})
     mesh, record = build_proxy(box_flight, out_dir, cfg, seed=0)
     assert record["cached"] is True and record["proxy_cached"] is False
     assert len(mesh.faces) <= 20000
@@ -459,11 +460,21 @@ def test_build_proxy_covers_the_boxes_and_refuses_partial_models(box_flight, box
     distance = trimesh.proximity.closest_point(mesh, samples)[1]
     assert np.mean(distance < 0.15) > 0.7
 
-    strict = reconstruct_cfg(**{"proxy.min_registered_fraction": 1.01})
+    strict = reconstruct_cfg(**{"proxy.min_registered_fraction": 1.01, "proxy.dense": {}})
     with pytest.raises(ReconstructionError, match="partial model") as info:
         build_proxy(box_flight, out_dir, strict, seed=0)
     assert info.value.record["status"] == "failed"
     assert info.value.record["registered_fraction"] == 1.0
+
+
+def test_proxy_dense_settings_override_only_the_exploratory_flight():
+    cfg = reconstruct_cfg(**{"proxy.dense": {"max_image_size": 640, "num_partners": 2}})
+    flight_cfg = proxy_flight_config(cfg)
+    assert flight_cfg["dense"]["max_image_size"] == 640 and flight_cfg["dense"]["num_partners"] == 2
+    assert flight_cfg["dense"]["sgbm"] == OmegaConf.to_container(cfg.dense.sgbm)
+    assert cfg.dense.max_image_size == 1024  # the scored flights' settings are untouched
+    with pytest.raises(ValueError, match="unknown dense settings"):
+        proxy_flight_config(reconstruct_cfg(**{"proxy.dense": {"max_image_sise": 640}}))
 
 
 def _flight_of_images(image_dir: Path, images, intr: Intrinsics) -> Path:
