@@ -124,7 +124,7 @@ def _mkdir(path: Path) -> Path:
 
 def read_ply_xyz(path: Path) -> np.ndarray:
     """Vertex positions (N, 3) float64 of a binary little-endian PLY with scalar vertex properties."""
-    types = {"float": "<f4", "double": "<f8", "uchar": "u1", "int": "<i4"}
+    types = {"float": "<f4", "double": "<f8", "uchar": "u1", "uint8": "u1", "int": "<i4", "float32": "<f4"}
     with open(path, "rb") as f:
         fields, count = [], 0
         while (line := f.readline().decode().strip()) != "end_header":

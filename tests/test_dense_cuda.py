@@ -16,6 +16,7 @@ import yaml
 
 pycolmap = pytest.importorskip("pycolmap")
 
+from experiments.device_dense_cuda import read_ply_xyz  # noqa: E402
 from reconstruct.dense import (  # noqa: E402
     compute_depth_maps_cpu,
     compute_depth_maps_cuda,
@@ -94,21 +95,6 @@ def build_plane_workspace(root: Path, intr: Intrinsics) -> tuple[Path, dict[str,
     (root / "stereo").mkdir()
     (root / "stereo" / "patch-match.cfg").write_text("".join(f"{n}\n__auto__, 8\n" for n in sorted(truth)))
     return root, truth
-
-
-def read_ply_xyz(path: Path) -> np.ndarray:
-    """Vertex positions (N, 3) of a binary little-endian PLY with scalar vertex properties."""
-    types = {"float": "<f4", "double": "<f8", "uchar": "u1", "uint8": "u1", "int": "<i4", "float32": "<f4"}
-    with open(path, "rb") as f:
-        fields, count = [], 0
-        while (line := f.readline().decode().strip()) != "end_header":
-            parts = line.split()
-            if parts[:2] == ["element", "vertex"]:
-                count = int(parts[2])
-            elif parts[0] == "property":
-                fields.append((parts[2], types[parts[1]]))
-        data = np.frombuffer(f.read(), dtype=np.dtype(fields), count=count)
-    return np.column_stack([data["x"], data["y"], data["z"]]).astype(np.float64)
 
 
 def exact_depth(view) -> np.ndarray:
