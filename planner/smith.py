@@ -385,7 +385,7 @@ def optimise(
     """Smith's per-view Nelder-Mead optimisation of ``objective.viewpoints`` (in place).
 
     Returns:
-        a record: objective per round, rounds, steps, restarts, penalised evaluations.
+        a record: objective per sweep, rounds, steps, restarts, penalised evaluations.
     """
     min_dist = float(params["min_distance_m"])
     min_alt = float(params["min_altitude_m"])
@@ -419,11 +419,10 @@ def optimise(
         return value, yaw, pitch
 
     stepper = NelderMeadStepper(evaluate)
-    history = [objective.objective()]
     # The window counts sweeps (as many single-view steps as there are views): with views stepped
     # only when d_max apart, a round on a small scene moves one view, and a window of rounds would
     # stop after a few steps per view.
-    per_sweep = [history[0]]
+    per_sweep = [objective.objective()]
     window = int(params["convergence_window"])
     tol = float(params["convergence_tol"]) * objective.h_target
     restarts = steps = rounds = 0
@@ -457,17 +456,15 @@ def optimise(
                 )
             restarts += int(useless.sum())
         objective.move(chosen, new_vps)
-        history.append(objective.objective())
         steps += len(chosen)
         rounds += 1
         bar.update(len(chosen))
         if steps >= len(per_sweep) * n_views:
-            per_sweep.append(history[-1])
+            per_sweep.append(objective.objective())
             if len(per_sweep) > window and per_sweep[-1 - window] - per_sweep[-1] < tol:
                 break
     bar.close()
     return {
-        "objective_per_round": history,
         "objective_per_sweep": per_sweep,
         "rounds": rounds,
         "steps": steps,
@@ -534,7 +531,6 @@ def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: 
         "objective_initial": initial_objective,
         "objective_final": objective.objective(),
         "objective_per_sweep": record.pop("objective_per_sweep"),
-        "objective_per_round_last": record.pop("objective_per_round")[-1],
         "optimisation": record,
         "rays_cast": model.rays_cast,
     }
