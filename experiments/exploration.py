@@ -68,7 +68,9 @@ def build_exploration_proxy(
         rendered = render_flight(
             scene, plan.viewpoints, intrinsics, entry / "images", cfg.render, kinds=plan.kinds
         )
-        proxy, record = build_proxy(entry / "images", entry / "recon", cfg.reconstruct, seed)
+        proxy, record = build_proxy(
+            entry / "images", entry / "recon", cfg.reconstruct, seed, roi=scene.structure_bounds
+        )
         proxy.export(entry / PROXY_FILE)
         return {
             "n_images": len(plan.viewpoints),

@@ -286,7 +286,16 @@ def proxy_flight_config(cfg: Mapping) -> dict:
     return plain
 
 
-def build_proxy(image_dir, cache_dir, cfg: Mapping, seed: int) -> tuple[trimesh.Trimesh, dict]:
+def _roi_key(roi: Box | None, pcfg: Mapping) -> list | None:
+    """The region of interest as it enters the proxy's content key (None when it cuts nothing)."""
+    if roi is None or pcfg.get("roi_margin_m") is None:
+        return None
+    return [list(roi.lo), list(roi.hi)]
+
+
+def build_proxy(
+    image_dir, cache_dir, cfg: Mapping, seed: int, roi: Box | None = None
+) -> tuple[trimesh.Trimesh, dict]:
     """Reconstruct the exploratory flight and mesh its dense cloud into the planners' proxy.
 
     Both steps are cached under ``cache_dir`` (``recon.json``, ``proxy.json`` keyed by content), so
@@ -298,6 +307,9 @@ def build_proxy(image_dir, cache_dir, cfg: Mapping, seed: int) -> tuple[trimesh.
         cache_dir: output folder of the reconstruction and the proxy.
         cfg: the ``reconstruct`` config.
         seed: seed of the reconstruction.
+        roi: the survey's region of interest (the box the exploratory flight was planned on). With
+            ``proxy.roi_margin_m`` set, the proxy is cut to it grown by that margin sideways, so the
+            planners do not spend views on the ground the exploratory flight saw around the site.
 
     Returns:
         (proxy mesh in world metres, record of the reconstruction + ``proxy_faces``,
@@ -315,7 +327,10 @@ def build_proxy(image_dir, cache_dir, cfg: Mapping, seed: int) -> tuple[trimesh.
             recon | {"status": "failed", "stage": "proxy"},
         )
     key = hashlib.sha256(
-        json.dumps({"recon": recon["content_key"], "proxy": _plain(pcfg)}, sort_keys=True).encode()
+        json.dumps(
+            {"recon": recon["content_key"], "proxy": _plain(pcfg), "roi": _roi_key(roi, pcfg)},
+            sort_keys=True,
+        ).encode()
     ).hexdigest()
     cached = _cached_record(cache_dir, key, PROXY_RECORD_FILE, (PROXY_FILE,))
     if cached is not None:
@@ -324,6 +339,17 @@ def build_proxy(image_dir, cache_dir, cfg: Mapping, seed: int) -> tuple[trimesh.
         return mesh, recon | cached | {"proxy_cached": True}
     start = time.perf_counter()
     bounds = proxy_bounds(Path(recon["sparse_dir"]), float(pcfg["crop_margin_m"]))
+    roi_margin = pcfg.get("roi_margin_m")
+    if roi is not None and roi_margin is not None:
+        site = roi.expanded(float(roi_margin))
+        lo, hi = bounds.lo_array.copy(), bounds.hi_array.copy()
+        lo[:2], hi[:2] = np.maximum(lo[:2], site.lo_array[:2]), np.minimum(hi[:2], site.hi_array[:2])
+        if np.any(lo >= hi):
+            raise ReconstructionError(
+                f"the region of interest {roi} does not overlap the exploratory reconstruction {bounds}",
+                recon | {"status": "failed", "stage": "proxy"},
+            )
+        bounds = Box(tuple(lo.tolist()), tuple(hi.tolist()))
     mesh = poisson_proxy(recon["dense_ply"], bounds, cfg)
     write_atomic(cache_dir / PROXY_FILE, lambda p: mesh.export(p))
     proxy_record = {

@@ -467,6 +467,20 @@ def test_build_proxy_covers_the_boxes_and_refuses_partial_models(box_flight, box
     assert info.value.record["registered_fraction"] == 1.0
 
 
+def test_build_proxy_cuts_to_the_region_of_interest(box_flight, box_reconstruction):
+    out_dir, _ = box_reconstruction
+    roi = Box(BOXES[0][0], BOXES[0][1])  # the big box: the survey's site
+    whole, _ = build_proxy(box_flight, out_dir, reconstruct_cfg(**{"proxy.dense": {}}), seed=0, roi=roi)
+    cfg = reconstruct_cfg(**{"proxy.dense": {}, "proxy.roi_margin_m": 0.5})
+    cut, record = build_proxy(box_flight, out_dir, cfg, seed=0, roi=roi)
+    assert record["proxy_cached"] is False
+    lo, hi = np.array(roi.lo[:2]) - 0.5, np.array(roi.hi[:2]) + 0.5
+    tol = cfg.proxy.voxel_size_m + 1e-6  # the Poisson mesh is cut to the cropped cloud's box + 1 voxel
+    assert np.all(cut.vertices[:, :2] >= lo - tol) and np.all(cut.vertices[:, :2] <= hi + tol)
+    # without a margin nothing is cut: the ground around the site stays
+    assert np.any(whole.vertices[:, :2] < lo - 1.0) or np.any(whole.vertices[:, :2] > hi + 1.0)
+
+
 def test_proxy_dense_settings_override_only_the_exploratory_flight():
     cfg = reconstruct_cfg(**{"proxy.dense": {"max_image_size": 640, "num_partners": 2}})
     flight_cfg = proxy_flight_config(cfg)
