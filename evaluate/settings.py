@@ -90,7 +90,7 @@ class EvaluationSettings:
     distance_cap_m: float | None = 1.0
     mesh_input: str = "vertices"
     mesh_sample_density_per_m2: float = 10000.0
-    max_gt_samples: int = 20_000_000
+    max_gt_samples: int = 40_000_000
     chunk_points: int = 1_000_000
     export_gt_mesh: bool = True
     visualise: VisualisationSettings = field(default_factory=VisualisationSettings)

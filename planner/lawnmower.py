@@ -23,7 +23,9 @@ import time
 from collections.abc import Mapping
 
 import numpy as np
+import open3d as o3d
 import trimesh
+from scipy import ndimage
 
 from planner.base import Plan, PlanningError, merge_params
 from scene.base import Box
@@ -42,10 +44,12 @@ DEFAULTS = {
     "min_clearance_above_top_m": 2.0,  # refuse flights lower than structure top + this
     "pitch_min_deg": -90.0,
     "pitch_max_deg": 30.0,
-    "structure_min_height_m": 0.5,  # plan(): proxy vertices above this height form the structure
+    "structure_min_height_m": 0.5,  # plan(): see structure_bounds_from_proxy
 }
 
 MODES = ("centre", "nadir")
+STRUCTURE_CELL_M = 1.0  # column size (m) of the height map that finds the structure on a proxy
+STRUCTURE_SUPPORT_GAP_M = 1.0  # a proxy piece farther than this (m) from the rest is a floater
 
 
 def _merged(params: Mapping | None) -> dict:
@@ -210,16 +214,79 @@ def plan_exploration(
     return Plan(viewpoints=viewpoints, kinds=kinds, planner="lawnmower", info=info)
 
 
-def structure_bounds_from_proxy(proxy: trimesh.Trimesh, min_height_m: float = 0.5) -> Box:
-    """Box around the proxy's structure: its vertices higher than ``min_height_m`` above the ground.
+def grounded_faces(proxy: trimesh.Trimesh, support_gap_m: float = STRUCTURE_SUPPORT_GAP_M) -> np.ndarray:
+    """Indices (F,) of the faces of the proxy's pieces that hang together with its largest piece.
 
-    Falls back to the whole proxy's bounds when no vertex is that high (a flat proxy).
+    A reconstructed proxy is one large piece (ground and structure) plus separate pieces: parts of the
+    structure that the surface reconstruction split off (a roof tier, a dome's lantern) and floaters,
+    blobs that Poisson closed in empty space above the roofs. A piece is kept when one of its vertices
+    lies within ``support_gap_m`` of the surface of a kept piece, starting from the largest (by area);
+    floaters, metres away from everything, are not.
     """
+    faces = np.asarray(proxy.faces)
     vertices = np.asarray(proxy.vertices, dtype=float)
-    if len(vertices) == 0 or len(proxy.faces) == 0:
+    pieces = trimesh.graph.connected_components(proxy.face_adjacency, nodes=np.arange(len(faces)), min_len=1)
+    pieces = sorted(pieces, key=lambda p: -proxy.area_faces[p].sum())
+    kept, rest = [pieces[0]], pieces[1:]
+    while rest:
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(
+            o3d.core.Tensor(vertices.astype(np.float32)),
+            o3d.core.Tensor(faces[np.concatenate(kept)].astype(np.uint32)),
+        )
+        near = [
+            scene.compute_distance(o3d.core.Tensor(vertices[np.unique(faces[p])].astype(np.float32)))
+            .numpy()
+            .min()
+            <= support_gap_m
+            for p in rest
+        ]
+        if not any(near):
+            break
+        kept += [p for p, n in zip(rest, near, strict=True) if n]
+        rest = [p for p, n in zip(rest, near, strict=True) if not n]
+    return np.sort(np.concatenate(kept))
+
+
+def _surface_points(
+    mesh: trimesh.Trimesh, cell_m: float, per_cell: int = 4, cap: int = 400_000
+) -> np.ndarray:
+    """The mesh's vertices and ``per_cell`` points per ``cell_m``-sided square of its area (N, 3), metres."""
+    count = int(min(cap, math.ceil(per_cell * mesh.area / cell_m**2)))
+    samples, _ = trimesh.sample.sample_surface(mesh, count, seed=0)
+    return np.vstack([np.asarray(mesh.vertices, dtype=float), samples])
+
+
+def structure_bounds_from_proxy(
+    proxy: trimesh.Trimesh, min_height_m: float = 0.5, cell_m: float = STRUCTURE_CELL_M
+) -> Box:
+    """Box around the proxy's structure: the largest connected raised region of its height map.
+
+    Floaters are dropped first (``grounded_faces``). The rest of the surface, sampled at a few points
+    per column, is binned into ``cell_m`` x ``cell_m`` columns (metres); a column is raised when its
+    highest point lies more than ``min_height_m`` above the ground z = 0. The structure is the largest
+    8-connected group of raised columns, and the box spans the raised points in it (z from the ground
+    up). Without these two steps, bumps on a reconstructed ground apron far from the building and
+    blobs above its roofs stretch the box, and every grid planned over it, to the apron's edge and the
+    blob's height. Falls back to the whole proxy's bounds when nothing is that high (a flat proxy).
+    """
+    if len(proxy.vertices) == 0 or len(proxy.faces) == 0:
         raise PlanningError("lawnmower: the proxy mesh is empty")
-    high = vertices[vertices[:, 2] > float(min_height_m)]
-    box = Box.from_points(high if len(high) else vertices)
+    if not cell_m > 0:
+        raise ValueError(f"lawnmower: the structure cell size must be positive, got {cell_m} m")
+    points = _surface_points(proxy.submesh([grounded_faces(proxy)], append=True), cell_m)
+    raised = points[:, 2] > float(min_height_m)
+    if not raised.any():
+        box = Box.from_points(np.asarray(proxy.vertices, dtype=float))
+    else:
+        high = points[raised]
+        cells = np.floor((high[:, :2] - high[:, :2].min(axis=0)) / cell_m).astype(np.int64)
+        occupied = np.zeros(cells.max(axis=0) + 1, dtype=bool)
+        occupied[cells[:, 0], cells[:, 1]] = True
+        labels, n_groups = ndimage.label(occupied, structure=np.ones((3, 3), dtype=bool))
+        sizes = np.bincount(labels.ravel(), minlength=n_groups + 1)[1:]
+        largest = 1 + int(np.argmax(sizes))
+        box = Box.from_points(high[labels[cells[:, 0], cells[:, 1]] == largest])
     lo = box.lo_array.copy()
     lo[2] = min(lo[2], 0.0)
     return Box(tuple(lo.tolist()), box.hi)

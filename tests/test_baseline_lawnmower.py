@@ -7,7 +7,7 @@ import pytest
 import trimesh
 
 from planner.base import PlanningError
-from planner.lawnmower import plan, plan_exploration
+from planner.lawnmower import plan, plan_exploration, structure_bounds_from_proxy
 from scene.base import Box
 from scene.camera import Intrinsics, project_points, world_from_cam_rotation
 
@@ -109,6 +109,31 @@ def test_plan_from_proxy_uses_structure_above_ground():
     from_proxy = plan(proxy, CAMERA, {"mode": "nadir"}, seed=0)
     from_box = plan_exploration(TOMB_BOUNDS, CAMERA, {"mode": "nadir"}, seed=0)
     np.testing.assert_allclose(from_proxy.viewpoints, from_box.viewpoints, atol=1e-9)
+
+
+def test_structure_bounds_ignore_apron_bumps_and_floaters_but_keep_split_off_parts():
+    # A reconstructed proxy in miniature: an 80 m ground apron with two bumps far from the building,
+    # the building, a roof tier that the surface reconstruction split off (0.2 m above the roof) and
+    # a floater 6 m above the roof. The box must be the building and its tier, nothing else.
+    ground = trimesh.creation.box(extents=(80.0, 80.0, 0.2)).subdivide_to_size(2.0)
+    ground.apply_translation((0, 0, -0.1))
+    bumps = [trimesh.creation.box(extents=(2.0, 2.0, 1.5)) for _ in range(2)]
+    bumps[0].apply_translation((33.0, 30.0, 0.75))
+    bumps[1].apply_translation((-30.0, 20.0, 0.75))
+    building = trimesh.creation.box(extents=(10.0, 8.0, 6.0))
+    building.apply_translation((2.0, -1.0, 3.0))
+    tier = trimesh.creation.box(extents=(4.0, 4.0, 1.0))
+    tier.apply_translation((2.0, -1.0, 6.7))
+    floater = trimesh.creation.icosphere(radius=1.0)
+    floater.apply_translation((0.0, 0.0, 13.0))
+    proxy = trimesh.util.concatenate([ground, *bumps, building, tier, floater])
+
+    box = structure_bounds_from_proxy(proxy, min_height_m=0.5)
+
+    np.testing.assert_allclose(box.lo, (-3.0, -5.0, 0.0), atol=1e-6)
+    np.testing.assert_allclose(box.hi, (7.0, 3.0, 7.2), atol=1e-6)
+    everything = trimesh.util.concatenate([ground, *bumps, building, tier, floater]).bounds
+    assert everything[1][2] == pytest.approx(14.0) and everything[1][0] == pytest.approx(40.0)
 
 
 @pytest.mark.parametrize(

@@ -413,3 +413,17 @@ def test_error_visualisation_colours_and_files(tmp_path, sphere):
     assert 100.0 * covered.mean() == pytest.approx(record["comp_050"], abs=1e-9)
     pngs = sorted(p.name for p in (tmp_path / "eval").glob("*.png"))
     assert pngs == sorted([f"error_{v}.png" for v in VIEW_NAMES] + [f"coverage_{v}.png" for v in VIEW_NAMES])
+
+
+@pytest.mark.parametrize("name", ["tomb", "church", "cathedral"])
+def test_default_settings_can_score_every_procedural_scene(name):
+    # The cathedral's region (about 30k m^2) once needed more samples than the default limit (then
+    # 20M) allowed, so its cells failed in the evaluate stage after the whole reconstruction.
+    from scene.registry import load_scene
+
+    scene = load_scene(
+        {"name": name, "seed": 0, "texture_size": 256, "small_texture_size": 256}, cache_dir=None
+    )
+    settings = EvaluationSettings.from_config(_load_group_config("default"))
+    area = clip_mesh_to_box(scene.ground_truth_mesh, scene.evaluation_region).area
+    assert area * settings.gt_sample_density_per_m2 <= settings.max_gt_samples
