@@ -24,13 +24,14 @@ log = logging.getLogger(__name__)
 PROXY_FILE = "proxy.ply"
 
 
-def exploration_cache_key(cfg: DictConfig) -> str:
-    """Content key of the exploratory flight + proxy for a composed run config."""
+def exploration_cache_key(cfg: DictConfig, scene: Scene) -> str:
+    """Content key of the exploratory flight + proxy: the scene's content and the run config."""
 
     def plain(node):
         return OmegaConf.to_container(node, resolve=True)
 
     return cache_key(
+        scene.fingerprint,
         plain(cfg.scene),
         plain(cfg.camera),
         plain(cfg.exploration),
@@ -79,6 +80,6 @@ def build_exploration_proxy(
             **{k: v for k, v in record.items() if isinstance(v, int | float | str | bool)},
         }
 
-    entry, record = cached_entry(cfg.cache_dir, "exploration", exploration_cache_key(cfg), build)
+    entry, record = cached_entry(cfg.cache_dir, "exploration", exploration_cache_key(cfg, scene), build)
     proxy = trimesh.load(entry / PROXY_FILE, force="mesh", process=False)
     return proxy, {**record, "entry": str(entry)}

@@ -6,6 +6,7 @@ never see it (they plan on the proxy reconstructed from images).
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -149,3 +150,24 @@ class Scene:
     @property
     def n_faces(self) -> int:
         return int(sum(len(p.faces) for p in self.parts))
+
+    @cached_property
+    def fingerprint(self) -> str:
+        """Hex digest of everything a camera could see: geometry, UVs, colours and texture pixels.
+
+        Cache keys of rendered flights include it, so a change to a scene generator is never
+        served a flight (or proxy) rendered from the scene before the change.
+        """
+        digest = hashlib.blake2b(digest_size=16)
+        digest.update(self.name.encode())
+        for part in self.parts:
+            digest.update(repr((part.name, part.texture)).encode())
+            for array in (part.vertices, part.faces, part.uv, part.vertex_colors):
+                if array is not None:
+                    digest.update(repr(array.shape).encode())
+                    digest.update(np.ascontiguousarray(array).tobytes())
+        for key in sorted(self.textures):
+            digest.update(key.encode())
+            digest.update(repr(self.textures[key].shape).encode())
+            digest.update(np.ascontiguousarray(self.textures[key]).tobytes())
+        return digest.hexdigest()

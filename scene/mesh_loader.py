@@ -208,10 +208,12 @@ def load_mesh_scene(
             tile_m=mat.texel_m * mat.size,
             cell_m=4.0,
         )
-        parts.append(_ground_part(tiles, mat, seed))
-        textures["ground"] = cached_texture(
-            stem, "ground", mat.preset, mat.size, material_seed(seed, "ground"), cache_dir
-        )
+        info["ground_parts"] = [tile.material for tile in tiles]
+        for tile in tiles:  # one texture per tile (own seed), so no patch of ground repeats
+            parts.append(_ground_part(tile, mat, seed))
+            textures[tile.material] = cached_texture(
+                stem, tile.material, mat.preset, mat.size, material_seed(seed, tile.material), cache_dir
+            )
     evaluation = Box(
         (structure.lo[0] - apron_m, structure.lo[1] - apron_m, -0.5),
         (structure.hi[0] + apron_m, structure.hi[1] + apron_m, structure.hi[2] + 1.0),
@@ -311,22 +313,12 @@ def _box_uv(vertices, faces, period_m: float) -> np.ndarray:
     return uv / period_m
 
 
-def _ground_part(tiles: list[Piece], mat: Material, seed: int) -> MeshPart:
-    """One ground MeshPart from tiles, each at its own random offset in the ground texture."""
+def _ground_part(tile: Piece, mat: Material, seed: int) -> MeshPart:
+    """The MeshPart of one ground tile, reading its own texture (``tile.material``) from a random offset."""
     rng = np.random.default_rng([seed, 7])
-    period = mat.texel_m * mat.size
-    chunks = []
-    for tile in tiles:
-        corner_uv = tile.vertices[tile.faces][..., :2] / period + rng.random(2)
-        chunks.append(_split_by_uv(tile.vertices, tile.faces.astype(np.int64), corner_uv))
-    offsets = np.cumsum([0] + [len(c[0]) for c in chunks[:-1]])
-    return MeshPart(
-        "ground",
-        np.concatenate([c[0] for c in chunks]),
-        np.concatenate([c[1] + o for c, o in zip(chunks, offsets, strict=True)]),
-        uv=np.concatenate([c[2] for c in chunks]),
-        texture="ground",
-    )
+    corner_uv = tile.vertices[tile.faces][..., :2] / (mat.texel_m * mat.size) + rng.random(2)
+    vertices, faces, uv = _split_by_uv(tile.vertices, tile.faces.astype(np.int64), corner_uv)
+    return MeshPart(tile.material, vertices, faces, uv=uv, texture=tile.material)
 
 
 def _collada_unit_name(path: Path) -> str | None:

@@ -56,3 +56,32 @@ def test_cache_key_depends_on_content_only():
     assert cache_key({"a": 1, "b": [1, 2]}) == cache_key({"b": [1, 2], "a": 1})
     assert cache_key({"a": 1}) != cache_key({"a": 2})
     assert len(cache_key("x")) == 16
+
+
+def test_exploration_key_follows_the_scene_content_not_only_its_config():
+    import numpy as np
+    from hydra import compose, initialize_config_dir
+
+    from experiments.exploration import exploration_cache_key
+    from scene.base import Box, MeshPart, Scene
+
+    conf_dir = Path(__file__).resolve().parents[1] / "conf"
+    with initialize_config_dir(config_dir=str(conf_dir), version_base=None):
+        cfg = compose(config_name="config", overrides=["scene=tomb"])
+
+    def scene(texture_value: int) -> Scene:
+        quad = MeshPart(
+            "ground",
+            np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float),
+            np.array([[0, 1, 2], [0, 2, 3]]),
+            uv=np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float),
+            texture="ground",
+        )
+        texture = np.full((4, 4, 3), texture_value, np.uint8)
+        box = Box((0, 0, 0), (1, 1, 1))
+        return Scene("tomb", [quad], {"ground": texture}, box, box)
+
+    same_a, same_b, other = scene(10), scene(10), scene(11)
+    assert exploration_cache_key(cfg, same_a) == exploration_cache_key(cfg, same_b)
+    # One texel value changed: a generator change must not be served the old scene's flight.
+    assert exploration_cache_key(cfg, other) != exploration_cache_key(cfg, same_a)

@@ -8,7 +8,7 @@ import pytest
 import trimesh
 from PIL import Image
 
-from scene.base import Box
+from scene.base import Box, MeshPart
 from scene.mesh_loader import load_mesh_scene
 from scene.procedural.geometry import (
     Builder,
@@ -35,6 +35,17 @@ def _scene_cfg(name: str, seed: int = 0, **extra) -> dict:
 def scenes():
     cfgs = {"tomb": {}, "church": {}, "cathedral": {"max_edge_m": 1.5, "ground_cell_m": 2.0}}
     return {name: load_scene(_scene_cfg(name, **extra), cache_dir=None) for name, extra in cfgs.items()}
+
+
+def ground_of(scene) -> MeshPart:
+    """The scene's ground tiles merged into one part."""
+    tiles = [p for p in scene.parts if p.name in scene.info["ground_parts"]]
+    offsets = np.cumsum([0] + [len(t.vertices) for t in tiles[:-1]])
+    return MeshPart(
+        "ground",
+        np.concatenate([t.vertices for t in tiles]),
+        np.concatenate([t.faces + o for t, o in zip(tiles, offsets, strict=True)]),
+    )
 
 
 # ------------------------------------------------------------------------------------ textures
@@ -210,17 +221,35 @@ def test_scene_size_matches_spec(scenes, name, footprint, tol, height_range):
     extent = s.structure_bounds.extent
     assert abs(extent[0] - footprint[0]) <= tol and abs(extent[1] - footprint[1]) <= tol, extent
     assert height_range[0] <= extent[2] <= height_range[1] and s.structure_bounds.lo[2] == pytest.approx(0.0)
-    ground = next(p for p in s.parts if p.name == "ground")
+    ground = ground_of(s)
     g_lo, g_hi = ground.vertices.min(0), ground.vertices.max(0)
     assert np.allclose(g_lo[:2], s.structure_bounds.lo_array[:2] - 30.0, atol=1e-6)
     assert np.allclose(g_hi[:2], s.structure_bounds.hi_array[:2] + 30.0, atol=1e-6)
     assert np.allclose(ground.vertices[:, 2], 0.0)
 
 
+@pytest.mark.parametrize("name", ["tomb", "church", "cathedral"])
+def test_no_patch_of_ground_repeats(scenes, name):
+    """Each ground tile reads its own texture and spans at most one period of it (tiles sharing one
+    texture repeat it shifted, and SfM then registers bare-ground views a tile shift away)."""
+    s = scenes[name]
+    tiles = [p for p in s.parts if p.name in s.info["ground_parts"]]
+    assert len(tiles) > 1  # 256 px textures at 2.5-3 cm: 6.4-7.7 m tiles
+    assert len({t.texture for t in tiles}) == len(tiles)
+    period_m = s.info["textures"]["ground"]["texel_m"] * s.info["textures"]["ground"]["size"]
+    for tile in tiles:
+        assert np.ptp(tile.vertices[:, :2], axis=0).max() <= period_m + 1e-9
+        assert np.ptp(tile.uv, axis=0).max() <= 1.0 + 1e-6
+    pixels = np.stack([s.textures[t.texture].reshape(-1, 3)[::97].astype(float) for t in tiles[:8]])
+    for i in range(len(pixels)):
+        for j in range(i + 1, len(pixels)):
+            assert np.corrcoef(pixels[i].ravel(), pixels[j].ravel())[0, 1] < 0.5
+
+
 def test_cathedral_towers_reach_60_m(scenes):
     s = scenes["cathedral"]
     for sx in (-1, 1):
-        v = np.concatenate([p.vertices for p in s.parts if p.name != "ground"])
+        v = np.concatenate([p.vertices for p in s.parts if p.name not in s.info["ground_parts"]])
         tower = v[(np.sign(v[:, 0]) == sx) & (np.abs(v[:, 0]) > 14.0) & (v[:, 1] < -42.0)]
         assert tower[:, 2].max() == pytest.approx(60.0, abs=0.01)
 
@@ -228,13 +257,13 @@ def test_cathedral_towers_reach_60_m(scenes):
 @pytest.mark.parametrize("name", ["tomb", "church", "cathedral"])
 def test_evaluation_region_is_structure_plus_apron(scenes, name):
     s = scenes[name]
-    structure = np.concatenate([p.vertices for p in s.parts if p.name != "ground"])
+    structure = np.concatenate([p.vertices for p in s.parts if p.name not in s.info["ground_parts"]])
     assert s.structure_bounds.contains(structure).all()
     assert s.evaluation_region.contains(structure).all()
     lo, hi = s.evaluation_region.lo_array, s.evaluation_region.hi_array
     assert np.allclose(lo, list(s.structure_bounds.lo_array[:2] - 3.0) + [-0.5])
     assert np.allclose(hi, list(s.structure_bounds.hi_array[:2] + 3.0) + [s.structure_bounds.hi[2] + 1.0])
-    ground = next(p for p in s.parts if p.name == "ground")
+    ground = ground_of(s)
     assert 0 < s.evaluation_region.contains(ground.vertices).mean() < 1  # an apron, not all the ground
 
 
@@ -322,6 +351,7 @@ def test_mesh_loader_y_up_and_vertex_colours(tmp_path):
     part = s.parts[0]
     assert part.vertex_colors is not None and part.vertex_colors.shape == (len(part.vertices), 3)
     assert np.allclose(s.evaluation_region.extent, [6.0, 10.0, 5.5])
+    assert s.info["ground_parts"] == ["ground"]  # one 51 m tile of ground covers the 22 x 26 m
     assert s.parts[-1].name == "ground" and np.allclose(s.parts[-1].vertices.max(0)[:2], [11.0, 13.0])
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 
 import numpy as np
 
@@ -144,8 +145,11 @@ def finish_scene(
         tile_m=period,
         cell_m=float(cfg.get("ground_cell_m", 1.0)),
     )
+    for tile in tiles:  # one texture per tile (own seed), so no patch of ground repeats
+        builder.materials.setdefault(tile.material, replace(ground_mat, key=tile.material))
+    ground_keys = {tile.material for tile in tiles}
     parts = builder.build(ground=tiles)
-    structure = Box.from_points(np.concatenate([p.vertices for p in parts if p.name != ground_material]))
+    structure = Box.from_points(np.concatenate([p.vertices for p in parts if p.name not in ground_keys]))
     evaluation = Box(
         (structure.lo[0] - apron, structure.lo[1] - apron, -0.5),
         (structure.hi[0] + apron, structure.hi[1] + apron, structure.hi[2] + 1.0),
@@ -166,6 +170,7 @@ def finish_scene(
             for m in builder.materials.values()
         },
         footprint_m=[float(v) for v in structure.extent[:2]],
+        ground_parts=sorted(ground_keys),
         height_m=float(structure.hi[2]),
         build_seconds=round(time.perf_counter() - started, 3),
     )

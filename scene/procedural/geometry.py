@@ -422,12 +422,19 @@ class Builder:
         return parts
 
 
+def ground_tile_material(material: str, index: int) -> str:
+    """Texture key of ground tile ``index``: ``material`` for the first, ``material_<index>`` after."""
+    return material if index == 0 else f"{material}_{index}"
+
+
 def ground_tiles(lo_xy, hi_xy, material: str, tile_m: float, cell_m: float) -> list[Piece]:
     """Flat ground at z = 0 over [lo, hi] (metres), as tiles of at most ``tile_m`` side.
 
-    Each tile reads its own random patch of the ground texture (a tile should be smaller than one
-    texture period so that nothing repeats inside it); faces are at most ``cell_m`` long so that
-    ground hidden under the structure can be culled.
+    Tile k has its own texture key (``ground_tile_material(material, k)``): the caller gives every
+    key its own texture, of one period ``tile_m`` or more, so no patch of ground repeats anywhere.
+    (Tiles reading one shared texture repeat it, shifted, once per tile: structure-from-motion then
+    registers views of bare ground a whole tile shift away.) Faces are at most ``cell_m`` long so
+    that ground hidden under the structure can be culled.
     """
     lo, hi = np.asarray(lo_xy, float), np.asarray(hi_xy, float)
     nx, ny = (int(np.ceil((hi[i] - lo[i]) / tile_m)) for i in range(2))
@@ -443,7 +450,8 @@ def ground_tiles(lo_xy, hi_xy, material: str, tile_m: float, cell_m: float) -> l
             faces = np.concatenate(
                 [np.column_stack([a, a + 1, a + mx + 2]), np.column_stack([a, a + mx + 2, a + mx + 1])]
             )
-            tiles.append(Piece(vertices, faces, material, "box", convex=False))
+            key = ground_tile_material(material, len(tiles))
+            tiles.append(Piece(vertices, faces, key, "box", convex=False))
     return tiles
 
 
