@@ -63,12 +63,21 @@ def _plain(value):
 
 
 def flight_content_key(image_dir: Path, flight: Flight, cfg: Mapping, seed: int) -> str:
-    """SHA-256 of the image bytes, ``cameras.json``, the relevant config, the seed, pycolmap's version."""
+    """SHA-256 of the image bytes, the cameras, the relevant config, the seed, pycolmap's version.
+
+    Of ``cameras.json`` only what the reconstruction reads (intrinsics and per-image poses) counts:
+    the renderer's timings in it differ on every render of the same flight.
+    """
     digest = hashlib.sha256()
     config = {key: _plain(cfg[key]) for key in FLIGHT_CONFIG_KEYS}
-    header = {"config": config, "seed": int(seed), "pycolmap": pycolmap.__version__}
+    cameras = json.loads((Path(image_dir) / CAMERAS_FILE).read_text())
+    header = {
+        "config": config,
+        "seed": int(seed),
+        "pycolmap": pycolmap.__version__,
+        "cameras": {key: cameras.get(key) for key in ("intrinsics", "images")},
+    }
     digest.update(json.dumps(header, sort_keys=True).encode())
-    digest.update((Path(image_dir) / CAMERAS_FILE).read_bytes())
     for name in flight.names:
         digest.update(name.encode() + b"\0")
         digest.update((Path(image_dir) / name).read_bytes())

@@ -607,3 +607,28 @@ def test_dense_backend_selection_follows_pycolmap_cuda():
             select_backend("cuda")
     with pytest.raises(ValueError, match="backend"):
         select_backend("opencl")
+
+
+def test_flight_key_ignores_render_timings_but_not_poses_or_pixels(box_flight, tmp_path):
+    import json
+    import shutil
+
+    from reconstruct.flight import read_flight
+
+    copy = Path(shutil.copytree(box_flight, tmp_path / "flight"))
+    key = flight_content_key(copy, read_flight(copy), reconstruct_cfg(), 0)
+    cameras_path = copy / "cameras.json"
+    cameras = json.loads(cameras_path.read_text())
+    # A re-render of the same flight writes other timings: the reconstruction must be reused.
+    cameras.update(render_time_s=123.0, build_time_s=4.5, images_per_s=0.1)
+    cameras_path.write_text(json.dumps(cameras))
+    assert flight_content_key(copy, read_flight(copy), reconstruct_cfg(), 0) == key
+    cameras["images"][0]["cam_from_world"]["translation"][0] += 0.01
+    cameras_path.write_text(json.dumps(cameras))
+    moved = flight_content_key(copy, read_flight(copy), reconstruct_cfg(), 0)
+    assert moved != key
+    first = copy / cameras["images"][0]["name"]
+    image = cv2.imread(str(first))
+    image[0, 0] = 255 - image[0, 0]
+    cv2.imwrite(str(first), image)
+    assert flight_content_key(copy, read_flight(copy), reconstruct_cfg(), 0) not in (key, moved)
