@@ -245,6 +245,8 @@ def _reconstruct(
             f"{flight.image_dir}: dense reconstruction produced no points", {"stage": "dense"}
         )
     record["dense_ply"] = dense["dense_path"]
+    if not bool(cfg.get("keep_dense_workspace", True)):
+        record["dense_workspace_freed_mb"] = _remove_tree(out_dir / "dense") / 1e6
     log.info(
         "dense: %d points from %d depth maps in %.1f s",
         dense["n_dense_points"],
@@ -252,6 +254,14 @@ def _reconstruct(
         dense["dense_time_s"],
     )
     return record
+
+
+def _remove_tree(path: Path) -> int:
+    """Delete ``path`` (a folder) and return the bytes its files held."""
+    size = sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+    shutil.rmtree(path)
+    log.info("removed %s (%.0f MB)", path, size / 1e6)
+    return size
 
 
 def _write_model_atomic(rec: pycolmap.Reconstruction, sparse_dir: Path) -> None:

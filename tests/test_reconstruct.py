@@ -632,3 +632,14 @@ def test_flight_key_ignores_render_timings_but_not_poses_or_pixels(box_flight, t
     image[0, 0] = 255 - image[0, 0]
     cv2.imwrite(str(first), image)
     assert flight_content_key(copy, read_flight(copy), reconstruct_cfg(), 0) not in (key, moved)
+
+
+def test_dense_workspace_can_be_dropped_without_changing_the_key(box_flight, box_reconstruction, tmp_path):
+    _, kept = box_reconstruction
+    cfg = reconstruct_cfg(keep_dense_workspace=False)
+    record = reconstruct_flight(box_flight, tmp_path, cfg, seed=0)
+    assert not (tmp_path / "dense").exists() and (tmp_path / "dense.ply").is_file()
+    assert record["dense_workspace_freed_mb"] > 1.0  # 33 views of depth + normal maps
+    assert record["content_key"] == kept["content_key"]
+    assert record["n_registered"] == kept["n_registered"] == 33
+    assert reconstruct_flight(box_flight, tmp_path, cfg, seed=0)["cached"] is True
