@@ -470,7 +470,8 @@ def test_build_proxy_covers_the_boxes_and_refuses_partial_models(box_flight, box
 def test_build_proxy_cuts_to_the_region_of_interest(box_flight, box_reconstruction):
     out_dir, _ = box_reconstruction
     roi = Box(BOXES[0][0], BOXES[0][1])  # the big box: the survey's site
-    whole, _ = build_proxy(box_flight, out_dir, reconstruct_cfg(**{"proxy.dense": {}}), seed=0, roi=roi)
+    uncut = reconstruct_cfg(**{"proxy.dense": {}, "proxy.roi_margin_m": None})
+    whole, _ = build_proxy(box_flight, out_dir, uncut, seed=0, roi=roi)
     cfg = reconstruct_cfg(**{"proxy.dense": {}, "proxy.roi_margin_m": 0.5})
     cut, record = build_proxy(box_flight, out_dir, cfg, seed=0, roi=roi)
     assert record["proxy_cached"] is False
