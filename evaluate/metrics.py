@@ -16,6 +16,11 @@ Definitions (distances in metres, percentages in 0-100):
 - ``chamfer_m`` = (``chamfer_acc_m`` + ``chamfer_comp_m``) / 2, the mean distances of each
   direction, each clipped at ``distance_cap_m``: an exact nearest-neighbour search from samples
   far inside a hole costs minutes, and outliers beyond the cap say nothing the percentiles miss.
+- Completeness per kind of surface, to see where a flight misses: each ground-truth sample takes
+  the class of its triangle (``surface_classes``): ``ground`` (facing up, below
+  ``ground_height_m``), ``roofs`` (facing up, above it), ``walls`` (facing sideways) and
+  ``undersides`` (facing down: eaves, arches). ``gt_share_{class}`` is the class's % of the samples,
+  ``comp_{t}_{class}`` the completeness over its samples (null for a class without samples).
 """
 
 from __future__ import annotations
@@ -163,12 +168,17 @@ def score_details(
     region_mesh = clip_mesh_to_box(gt_mesh, region) if gt_region_mesh is None else gt_region_mesh
     if len(region_mesh.faces) == 0:
         raise ValueError(f"no ground-truth surface inside the evaluation region {region.as_dict()}")
-    samples, _ = sample_surface(
+    samples, face_index = sample_surface(
         region_mesh, settings.gt_sample_density_per_m2, settings.gt_sample_seed, settings.max_gt_samples
     )
     # Barycentric rounding may put a sample on a cut face one ulp outside the box.
     samples = np.clip(samples, region.lo_array, region.hi_array)
-    samples = samples[spatial_order(samples)]
+    order = spatial_order(samples)
+    samples = samples[order]
+    sample_normals = region_mesh.face_normals[face_index[order]]
+    sample_class = surface_classes(
+        samples, sample_normals, settings.ground_height_m, settings.facing_normal_z
+    )
     if len(samples) == 0:
         raise ValueError(
             f"the ground truth inside {region.as_dict()} ({region_mesh.area:.3g} m^2) gets no sample at "
@@ -214,9 +224,48 @@ def score_details(
 
     record.update(_accuracy_metrics(accuracy, settings.accuracy_percentiles))
     record.update(_threshold_metrics(accuracy, completeness, settings.completeness_thresholds_m))
+    record.update(_class_completeness(completeness, sample_class, settings.completeness_thresholds_m))
     record.update(_chamfer_metrics(accuracy, completeness, cap))
     record["eval_time_s"] = time.perf_counter() - start
     return ScoreDetails(record, scored, accuracy, region_mesh, samples, completeness)
+
+
+SURFACE_CLASSES = ("ground", "roofs", "walls", "undersides")
+
+
+def surface_classes(
+    points: np.ndarray, normals: np.ndarray, ground_height_m: float, facing_normal_z: float
+) -> np.ndarray:
+    """Index into ``SURFACE_CLASSES`` of each surface point, from its height and unit normal.
+
+    Args:
+        points: (N, 3) points on the surface (m, world frame, ground at z = 0).
+        normals: (N, 3) unit normals of their triangles.
+        ground_height_m: an upward-facing point below this height is ground, above it roof.
+        facing_normal_z: a normal with z >= this faces up, z <= -this faces down, else sideways.
+
+    Returns:
+        (N,) int8 class indices.
+    """
+    nz = normals[:, 2]
+    classes = np.full(len(points), SURFACE_CLASSES.index("walls"), dtype=np.int8)
+    up = nz >= facing_normal_z
+    classes[up & (points[:, 2] < ground_height_m)] = SURFACE_CLASSES.index("ground")
+    classes[up & (points[:, 2] >= ground_height_m)] = SURFACE_CLASSES.index("roofs")
+    classes[nz <= -facing_normal_z] = SURFACE_CLASSES.index("undersides")
+    return classes
+
+
+def _class_completeness(completeness: np.ndarray, sample_class: np.ndarray, thresholds) -> dict:
+    record = {}
+    counts = np.bincount(sample_class, minlength=len(SURFACE_CLASSES))
+    for index, name in enumerate(SURFACE_CLASSES):
+        record[f"gt_share_{name}"] = 100.0 * counts[index] / len(sample_class)
+        in_class = completeness[sample_class == index]
+        for t in thresholds:
+            covered = 100.0 * np.count_nonzero(in_class <= t) / len(in_class) if len(in_class) else None
+            record[f"comp_{threshold_key(t)}_{name}"] = covered
+    return record
 
 
 def _accuracy_metrics(accuracy: np.ndarray, percentiles) -> dict:

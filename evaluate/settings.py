@@ -80,6 +80,10 @@ class EvaluationSettings:
         max_gt_samples: refuse a density that would draw more ground-truth samples than this.
         chunk_points: points per distance query chunk (bounds memory).
         export_gt_mesh: write the ground truth restricted to the region as a PLY beside the record.
+        ground_height_m: ground-truth surface facing up below this height (m) is ground, above it
+            roof (completeness per surface class).
+        facing_normal_z: a triangle faces up when its normal's z is at least this, down when at most
+            minus this, sideways otherwise (0.5: slopes up to 60 degrees are roofs).
         visualise: the error pictures.
     """
 
@@ -93,6 +97,8 @@ class EvaluationSettings:
     max_gt_samples: int = 40_000_000
     chunk_points: int = 1_000_000
     export_gt_mesh: bool = True
+    ground_height_m: float = 0.25
+    facing_normal_z: float = 0.5
     visualise: VisualisationSettings = field(default_factory=VisualisationSettings)
 
     def __post_init__(self) -> None:
@@ -115,6 +121,10 @@ class EvaluationSettings:
         _positive("evaluate.mesh_sample_density_per_m2", self.mesh_sample_density_per_m2)
         _positive("evaluate.max_gt_samples", self.max_gt_samples)
         _positive("evaluate.chunk_points", self.chunk_points)
+        if not 0.0 < float(self.facing_normal_z) < 1.0:
+            raise ValueError(f"evaluate.facing_normal_z must be in (0, 1), got {self.facing_normal_z!r}")
+        if not math.isfinite(float(self.ground_height_m)):
+            raise ValueError(f"evaluate.ground_height_m must be finite, got {self.ground_height_m!r}")
         if self.distance_cap_m is not None:
             _positive("evaluate.distance_cap_m", self.distance_cap_m)
             if self.distance_cap_m < max(thresholds):

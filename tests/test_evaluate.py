@@ -16,7 +16,14 @@ from evaluate.__main__ import main as cli_main
 from evaluate.cost import collect_cost_metrics
 from evaluate.geometry import clip_mesh_to_box, point_triangle_distance, sample_surface
 from evaluate.loading import ReconstructionFileError, load_reconstruction
-from evaluate.metrics import EmptyReconstructionWarning, GroundTruth, score_file, score_points
+from evaluate.metrics import (
+    SURFACE_CLASSES,
+    EmptyReconstructionWarning,
+    GroundTruth,
+    score_file,
+    score_points,
+    surface_classes,
+)
 from evaluate.record import write_metrics
 from evaluate.run import evaluate_reconstruction, format_region, parse_region
 from evaluate.settings import EvaluationSettings, threshold_key
@@ -108,6 +115,41 @@ def test_cloud_equal_to_the_gt_samples_is_complete_and_exact(sphere):
     assert record["acc95_m"] <= 1e-12 and record["acc_max_m"] <= 1e-6
     assert record["chamfer_m"] <= 1e-6
     assert record["fscore_050"] == 100.0
+
+
+def test_completeness_per_surface_class_of_a_roof_only_cloud():
+    # A 4 x 4 x 2 m block on 20 x 20 m of ground: ground 400 m^2, roof 16, walls 32, underside 16
+    # (the block's bottom face). A cloud on the roof alone covers the roof and the top t of the walls.
+    block = trimesh.creation.box(extents=(4.0, 4.0, 2.0))
+    block.apply_translation((0.0, 0.0, 1.0))
+    gt = trimesh.util.concatenate([plane(-10, 10, -10, 10), block])
+    roof = grid(-2, 2, -2, 2, 0.02, z=2.0)
+    record = score_points(roof, gt, Box((-11, -11, -1), (11, 11, 3)))
+    areas = {"ground": 400.0, "roofs": 16.0, "walls": 32.0, "undersides": 16.0}
+    for name, area in areas.items():
+        assert record[f"gt_share_{name}"] == pytest.approx(100.0 * area / 464.0, abs=0.3)
+    assert record["comp_050_roofs"] == pytest.approx(100.0)
+    assert record["comp_050_walls"] == pytest.approx(100.0 * 0.05 / 2.0, abs=0.3)
+    assert record["comp_075_walls"] == pytest.approx(100.0 * 0.075 / 2.0, abs=0.3)
+    assert record["comp_050_ground"] == 0.0 and record["comp_075_undersides"] == 0.0
+    # the classes partition the samples: their weighted completeness is the overall one
+    for key in ("050", "075"):
+        total = sum(record[f"gt_share_{c}"] * record[f"comp_{key}_{c}"] for c in SURFACE_CLASSES) / 100.0
+        assert total == pytest.approx(record[f"comp_{key}"], abs=1e-9)
+
+
+def test_surface_classes_by_slope_and_height():
+    def normal(slope_deg):  # unit normal of a surface tilted slope_deg from horizontal
+        a = math.radians(slope_deg)
+        return [math.sin(a), 0.0, math.cos(a)]
+
+    normals = np.array([normal(0), normal(0), normal(55), normal(65), normal(90), normal(125), normal(180)])
+    heights = np.array([0.1, 0.4, 5.0, 5.0, 5.0, 5.0, 3.0])
+    points = np.column_stack([np.zeros(7), np.zeros(7), heights])
+    names = [SURFACE_CLASSES[k] for k in surface_classes(points, normals, 0.25, 0.5)]
+    assert names == ["ground", "roofs", "roofs", "walls", "walls", "undersides", "undersides"]
+    with pytest.raises(ValueError, match="facing_normal_z"):
+        EvaluationSettings(facing_normal_z=1.0)
 
 
 def test_clip_mesh_to_box_keeps_exactly_the_surface_inside():
