@@ -2,7 +2,8 @@
 
     python -m experiments.tables multirun/2026-11-23_06-00-00 outputs/tomb --out tables/
 
-writes ``table1.{md,tex,csv}``, ``table2.{md,tex,csv}``, ``tables.md`` (both, for reading),
+writes ``table1.{md,tex,csv}``, ``table2.{md,tex,csv}``, ``surfaces.{md,tex,csv}`` (completeness
+at 0.050 m per kind of surface: where a flight misses), ``tables.md`` (all three, for reading),
 ``all_metrics.csv`` (every numeric metric summarised) and ``runs.csv`` (one row per run).
 Across seeds a cell shows mean ± sample standard deviation (ddof 1) over the runs that succeeded.
 """
@@ -21,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from evaluate.metrics import SURFACE_CLASSES
 from experiments.runs import (
     RunDirectoryError,
     load_runs,
@@ -98,8 +100,21 @@ TABLE_II = (
         scale=1.0 / 60.0,
     ),
 )
+TABLE_SURFACES = tuple(
+    MetricSpec(
+        f"comp_050_{name}",
+        f"{name.capitalize()} 0.050m (%)",
+        rf"\makecell{{{name.capitalize()}\\0.050m (\%)}}",
+        2,
+        "higher",
+    )
+    for name in SURFACE_CLASSES
+)
 TABLE_I_CAPTION = "Reconstruction accuracy and completeness results for the three scenes."
 TABLE_II_CAPTION = "Number of input images and alignment time for each flight path method."
+TABLE_SURFACES_CAPTION = (
+    "Completeness at 0.050 m per kind of ground-truth surface (evaluate.metrics.surface_classes)."
+)
 
 
 def summarise(runs: pd.DataFrame, specs: Sequence[MetricSpec]) -> pd.DataFrame:
@@ -353,7 +368,7 @@ def build_tables(run_paths: Sequence[str | Path]) -> dict[str, pd.DataFrame]:
 
     Returns:
         ``{"runs": per-run frame, "table1": Table I summary, "table2": Table II summary,
-        "all_metrics": summary of every numeric metric}``.
+        "surfaces": completeness per surface class, "all_metrics": summary of every numeric metric}``.
 
     Raises:
         RunDirectoryError: a path holds no run or a run breaks the contract.
@@ -363,6 +378,7 @@ def build_tables(run_paths: Sequence[str | Path]) -> dict[str, pd.DataFrame]:
         "runs": runs,
         "table1": summarise(runs, TABLE_I),
         "table2": summarise(runs, TABLE_II),
+        "surfaces": summarise(runs, TABLE_SURFACES),
         "all_metrics": summarise(runs, _numeric_specs(runs)),
     }
 
@@ -385,6 +401,7 @@ def write_tables(tables: dict[str, pd.DataFrame], out_dir: str | Path) -> list[P
     written = []
     table1_md = to_markdown(tables["table1"], TABLE_I, "Table I. " + TABLE_I_CAPTION)
     table2_md = to_markdown(tables["table2"], TABLE_II, "Table II. " + TABLE_II_CAPTION)
+    surfaces_md = to_markdown(tables["surfaces"], TABLE_SURFACES, TABLE_SURFACES_CAPTION)
     files = {
         "table1.md": table1_md,
         "table1.tex": to_latex(tables["table1"], TABLE_I, TABLE_I_CAPTION, "tab:recon_results"),
@@ -392,7 +409,10 @@ def write_tables(tables: dict[str, pd.DataFrame], out_dir: str | Path) -> list[P
         "table2.md": table2_md,
         "table2.tex": to_latex(tables["table2"], TABLE_II, TABLE_II_CAPTION, "tab:align_results"),
         "table2.csv": summary_csv(tables["table2"]),
-        "tables.md": table1_md + "\n" + table2_md,
+        "surfaces.md": surfaces_md,
+        "surfaces.tex": to_latex(tables["surfaces"], TABLE_SURFACES, TABLE_SURFACES_CAPTION, "tab:surfaces"),
+        "surfaces.csv": summary_csv(tables["surfaces"]),
+        "tables.md": table1_md + "\n" + table2_md + "\n" + surfaces_md,
         "all_metrics.csv": summary_csv(tables["all_metrics"]),
         "runs.csv": tables["runs"].to_csv(index=False, lineterminator="\n"),
     }

@@ -207,6 +207,9 @@ def test_cli_writes_files_and_csv_round_trips(study, tmp_path, capsys):
         "table2.tex",
         "table2.csv",
         "tables.md",
+        "surfaces.md",
+        "surfaces.tex",
+        "surfaces.csv",
         "all_metrics.csv",
         "runs.csv",
     } <= names
@@ -223,6 +226,24 @@ def test_cli_writes_files_and_csv_round_trips(study, tmp_path, capsys):
         assert (back["best"] == expected["best"]).all() and (back["n"] == expected["n"]).all()
     allm = tables.read_summary_csv(out / "all_metrics.csv")
     assert cell(allm, "tomb", "ours", "align_time_s")["mean"] == pytest.approx(48.0)
+
+
+def test_surface_table_shows_where_each_method_covers(tmp_path):
+    root = tmp_path / "multirun"
+    per_class = {
+        "lawnmower": dict(comp_050_ground=80.0, comp_050_roofs=70.0, comp_050_walls=20.0),
+        "ours": dict(comp_050_ground=60.0, comp_050_roofs=65.0, comp_050_walls=45.5),
+    }
+    for planner, values in per_class.items():
+        write_run(root, "tomb", planner, 0, comp_050_undersides=5.0, **values)
+    surfaces = tables.build_tables([root])["surfaces"]
+    assert cell(surfaces, "tomb", "ours", "comp_050_walls")["mean"] == 45.5
+    assert cell(surfaces, "tomb", "ours", "comp_050_walls")["best"]
+    assert cell(surfaces, "tomb", "lawnmower", "comp_050_ground")["best"]
+    assert not cell(surfaces, "tomb", "ours", "comp_050_ground")["best"]
+    assert cell(surfaces, "tomb", "ours", "comp_050_undersides")["best"]  # a tie marks both
+    markdown = tables.to_markdown(surfaces, tables.TABLE_SURFACES)
+    assert "| Walls 0.050m (%) |" in markdown and "**45.50**" in markdown
 
 
 def test_several_directories_and_reruns(study, tmp_path):
