@@ -26,6 +26,7 @@ PROXY_FILE = "proxy.ply"
 
 def exploration_cache_key(cfg: DictConfig, scene: Scene) -> str:
     """Content key of the exploratory flight + proxy: the scene's content and the run config."""
+    from reconstruct.pipeline import proxy_settings
 
     def plain(node):
         return OmegaConf.to_container(node, resolve=True)
@@ -36,7 +37,7 @@ def exploration_cache_key(cfg: DictConfig, scene: Scene) -> str:
         plain(cfg.camera),
         plain(cfg.exploration),
         plain(cfg.render),
-        plain(cfg.reconstruct),
+        proxy_settings(cfg.reconstruct),
         int(cfg.seed),
     )
 

@@ -46,6 +46,8 @@ PROXY_FILE = "proxy.ply"
 PROXY_RECORD_FILE = "proxy.json"
 # The config sections a flight's reconstruction depends on (the proxy section does not matter here).
 FLIGHT_CONFIG_KEYS = ("min_images", "min_registered_fraction", "gnss", "sfm", "align", "dense")
+# Settings that change no result (only what is kept on disk): left out of every cache key.
+OUTPUT_ONLY_KEYS = ("keep_dense_workspace",)
 
 
 def _plain(value):
@@ -60,6 +62,11 @@ def _plain(value):
     if isinstance(value, Mapping):
         return {str(k): _plain(v) for k, v in value.items()}
     return value
+
+
+def proxy_settings(cfg: Mapping) -> dict:
+    """The ``reconstruct`` settings a proxy depends on (all but ``OUTPUT_ONLY_KEYS``), for cache keys."""
+    return {key: value for key, value in _plain(cfg).items() if key not in OUTPUT_ONLY_KEYS}
 
 
 def flight_content_key(image_dir: Path, flight: Flight, cfg: Mapping, seed: int) -> str:

@@ -85,3 +85,13 @@ def test_exploration_key_follows_the_scene_content_not_only_its_config():
     assert exploration_cache_key(cfg, same_a) == exploration_cache_key(cfg, same_b)
     # One texel value changed: a generator change must not be served the old scene's flight.
     assert exploration_cache_key(cfg, other) != exploration_cache_key(cfg, same_a)
+
+    # Reconstruction settings the proxy depends on change the key; keeping the dense workspace does not.
+    def key_with(override: str) -> str:
+        with initialize_config_dir(config_dir=str(conf_dir), version_base=None):
+            changed = compose(config_name="config", overrides=["scene=tomb", override])
+        return exploration_cache_key(changed, same_a)
+
+    assert key_with("reconstruct.keep_dense_workspace=false") == exploration_cache_key(cfg, same_a)
+    assert key_with("reconstruct.dense.num_partners=7") != exploration_cache_key(cfg, same_a)
+    assert key_with("reconstruct.proxy.roi_margin_m=null") != exploration_cache_key(cfg, same_a)
