@@ -321,7 +321,9 @@ def plot_metrics_vs_images(
     scenes = sorted(runs["scene"].unique(), key=scene_sort_key)
     planners = sorted(runs["planner"].unique(), key=method_sort_key)
     colours = plt.get_cmap("tab10")
-    fig, axes = plt.subplots(2, len(scenes), figsize=(3.6 * len(scenes) + 1.6, 6.4), squeeze=False)
+    legend_width_in = 1.6  # beside the axes: a fraction of the width would cover a one-scene figure
+    width_in = 3.6 * len(scenes) + legend_width_in
+    fig, axes = plt.subplots(2, len(scenes), figsize=(width_in, 6.4), squeeze=False)
     for col, scene in enumerate(scenes):
         for row, (metric, label) in enumerate(
             [(accuracy, _metric_label(accuracy)), (completeness, _metric_label(completeness))]
@@ -353,7 +355,7 @@ def plot_metrics_vs_images(
             handles.setdefault(label, handle)
             labels[label] = label
     fig.legend(list(handles.values()), list(labels), loc="center right", frameon=False)
-    fig.tight_layout(rect=(0.0, 0.0, 0.86, 1.0))
+    fig.tight_layout(rect=(0.0, 0.0, 1.0 - legend_width_in / width_in, 1.0))
     return fig
 
 
