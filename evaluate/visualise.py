@@ -22,6 +22,9 @@ VIEW_NAMES = ("oblique_ne", "oblique_nw", "oblique_sw", "oblique_se", "nadir")
 COVERED_RGB = (44, 160, 44)
 MISSED_RGB = (214, 39, 40)
 BACKGROUND_RGB = (255, 255, 255)
+# Where save_view_png draws the view (left, bottom, width, height as figure fractions); the title sits
+# above this box and the colour bar or legend to its right, so view_pixels can cut them off.
+VIEW_AXES_BOX = (0.01, 0.02, 0.80, 0.90)
 
 
 def error_colors(distances_m: np.ndarray, vmax_m: float, colormap: str = "turbo") -> np.ndarray:
@@ -138,7 +141,7 @@ def save_view_png(path: str | Path, image: np.ndarray, title: str, colorbar: dic
     height, width = image.shape[:2]
     fig = Figure(figsize=(width / 100.0 + 1.6, height / 100.0 + 0.6), dpi=100)
     FigureCanvasAgg(fig)
-    ax = fig.add_axes((0.01, 0.02, 0.80, 0.90))
+    ax = fig.add_axes(VIEW_AXES_BOX)
     ax.imshow(image, interpolation="nearest")
     ax.set_axis_off()
     ax.set_title(title, fontsize=10)
@@ -152,8 +155,44 @@ def save_view_png(path: str | Path, image: np.ndarray, title: str, colorbar: dic
             Patch(color=np.array(COVERED_RGB) / 255.0, label="covered"),
             Patch(color=np.array(MISSED_RGB) / 255.0, label="missed"),
         ]
-        fig.legend(handles=handles, loc="center right", fontsize=9, frameon=False)
+        right_of_view = VIEW_AXES_BOX[0] + VIEW_AXES_BOX[2] + 0.01
+        fig.legend(
+            handles=handles, loc="center left", bbox_to_anchor=(right_of_view, 0.5), fontsize=9, frameon=False
+        )
     return write_atomic(path, lambda tmp: fig.savefig(tmp, format="png"))
+
+
+def view_pixels(picture: np.ndarray) -> np.ndarray:
+    """The view inside a picture written by ``save_view_png``, without title, legend or blank margins.
+
+    Args:
+        picture: the PNG's pixels (H, W, C), as ``matplotlib.pyplot.imread`` returns them (floats in
+            [0, 1]) or as uint8.
+
+    Returns:
+        The longest band of rows of ``VIEW_AXES_BOX`` with drawn (non-background) pixels, cut to its
+        drawn columns; the whole box when nothing is drawn. (The axes shrink to the view's aspect, so
+        the title can fall inside the box; blank rows separate it from the view.)
+    """
+    picture = np.asarray(picture)
+    height, width = picture.shape[:2]
+    left, bottom, box_w, box_h = VIEW_AXES_BOX
+    rows = slice(int(round(height * (1.0 - bottom - box_h))), int(round(height * (1.0 - bottom))))
+    cols = slice(int(round(width * left)), int(round(width * (left + box_w))))
+    box = picture[rows, cols]
+    scale = 1.0 if np.issubdtype(box.dtype, np.floating) else 255.0
+    background = np.asarray(BACKGROUND_RGB, dtype=float) / 255.0
+    drawn = np.any(np.abs(box[..., :3] / scale - background) > 0.02, axis=-1)
+    rows_drawn = drawn.any(axis=1)
+    if not rows_drawn.any():
+        return box
+    # Runs of drawn rows: a run starts where a drawn row follows a blank one.
+    edges = np.diff(np.concatenate(([0], rows_drawn.astype(np.int8), [0])))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    longest = int(np.argmax(ends - starts))
+    top, bottom = starts[longest], ends[longest]
+    c = np.flatnonzero(drawn[top:bottom].any(axis=0))
+    return box[top:bottom, c[0] : c[-1] + 1]
 
 
 def write_error_visualisation(

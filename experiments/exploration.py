@@ -22,6 +22,7 @@ from scene.camera import Intrinsics
 log = logging.getLogger(__name__)
 
 PROXY_FILE = "proxy.ply"
+WORKDIR_REUSE_FLAGS = ("cached", "proxy_cached")
 
 
 def exploration_cache_key(cfg: DictConfig, scene: Scene) -> str:
@@ -83,4 +84,7 @@ def build_exploration_proxy(
 
     entry, record = cached_entry(cfg.cache_dir, "exploration", exploration_cache_key(cfg, scene), build)
     proxy = trimesh.load(entry / PROXY_FILE, force="mesh", process=False)
+    # ``cached``/``proxy_cached`` say whether build_proxy reused its own work folder; a cache entry is
+    # always built fresh, so they read false even on a hit. ``cache_hit`` is the field that tells.
+    record = {k: v for k, v in record.items() if k not in WORKDIR_REUSE_FLAGS}
     return proxy, {**record, "entry": str(entry)}

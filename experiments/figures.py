@@ -28,15 +28,18 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
+from matplotlib.patches import Patch  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from evaluate.visualise import COVERED_RGB, MISSED_RGB, view_pixels  # noqa: E402
 from experiments.runs import (  # noqa: E402
     Run,
     RunDirectoryError,
     load_runs,
     method_name,
     method_sort_key,
+    read_run_config,
     read_run_viewpoints,
     run_scene_mesh,
     runs_frame,
@@ -63,6 +66,7 @@ METHOD_MARKERS = {"ours": "o", "smith": "s", "yan": "^", "lawnmower": "D"}
 _SPARE_MARKERS = ("v", "P", "X", "*", "<", ">")
 # Longest error image shown in a panel, in inches (keeps a panel of many views printable).
 PANEL_CELL_IN = 3.2
+COLOUR_BAR_LABEL = "error colour bar"  # the label of an error panel's colour bar axes
 
 
 def kind_colour(kind: str, known: Sequence[str] = ()) -> str:
@@ -372,12 +376,22 @@ def _metric_label(column: str) -> str:
     return column
 
 
-def plot_error_panel(images: dict[str, dict[str, Path]], title: str = "") -> Figure:
+def plot_error_panel(
+    images: dict[str, dict[str, Path]],
+    title: str = "",
+    error_scale: tuple[float, str] | None = None,
+    covered_within_m: float | None = None,
+) -> Figure:
     """Error images side by side: one column per method, one row per image name.
+
+    Each picture is cut to its view (``evaluate.visualise.view_pixels``: its own title and key are
+    too small to read at panel size); the panel draws one key for all of them instead.
 
     Args:
         images: ``{method label: {image name: PNG path}}`` in column order.
         title: figure title.
+        error_scale: ``(vmax_m, colormap)`` of the error pictures: draws one distance colour bar.
+        covered_within_m: the coverage pictures' threshold (m): draws one covered/missed legend.
 
     Returns:
         The figure; ``axes[row][col]`` shows image ``row`` (names sorted) of method ``col`` or is
@@ -399,7 +413,7 @@ def plot_error_panel(images: dict[str, dict[str, Path]], title: str = "") -> Fig
             ax = axes[row][col]
             ax.axis("off")
             if name in per_method:
-                ax.imshow(plt.imread(per_method[name]))
+                ax.imshow(view_pixels(plt.imread(per_method[name])))
             if row == 0:
                 ax.set_title(method)
             if col == 0 and len(names) > 1:
@@ -409,7 +423,36 @@ def plot_error_panel(images: dict[str, dict[str, Path]], title: str = "") -> Fig
     if title:
         fig.suptitle(title)
     fig.tight_layout()
+    # Keys go beyond the right edge: save_figure's tight bounding box takes them in.
+    if error_scale is not None:
+        vmax_m, colormap = error_scale
+        mappable = plt.cm.ScalarMappable(norm=plt.Normalize(0.0, float(vmax_m)), cmap=colormap)
+        cax = fig.add_axes((1.01, 0.3, 0.012, 0.4), label=COLOUR_BAR_LABEL)
+        fig.colorbar(mappable, cax=cax, extend="max", label="distance to ground truth (m)")
+    if covered_within_m is not None:
+        handles = [
+            Patch(color=np.array(COVERED_RGB) / 255.0, label=f"within {1000 * covered_within_m:.0f} mm"),
+            Patch(color=np.array(MISSED_RGB) / 255.0, label="missed"),
+        ]
+        fig.legend(handles=handles, loc="center left", bbox_to_anchor=(1.0, 0.5), frameon=False)
     return fig
+
+
+def panel_keys(run: Run) -> dict:
+    """``error_scale`` and ``covered_within_m`` of a run's evaluation pictures for ``plot_error_panel``.
+
+    From ``evaluate.visualise`` in the run's ``.hydra/config.yaml``, else the evaluation defaults.
+    """
+    from omegaconf import OmegaConf
+
+    from evaluate.settings import VisualisationSettings
+
+    known = VisualisationSettings.__dataclass_fields__
+    cfg = read_run_config(run.run_dir)
+    given = OmegaConf.select(cfg, "evaluate.visualise", default=None) if cfg is not None else None
+    given = {k: v for k, v in OmegaConf.to_container(given).items() if k in known} if given else {}
+    vis = VisualisationSettings(**given)
+    return {"error_scale": (vis.vmax_m, vis.colormap), "covered_within_m": vis.coverage_threshold_m}
 
 
 def save_figure(fig: Figure, stem: Path, dpi: int = 200) -> list[Path]:
@@ -515,20 +558,29 @@ def make_figures(
             written["flight_paths"] += save_figure(fig, out_dir / f"flight_paths_{planner}", dpi)
 
     panels = [
-        ("errors", error_glob, "Reconstruction error"),
-        ("coverage", coverage_glob, "Ground truth covered"),
+        ("errors", error_glob, "Reconstruction error", "error_scale"),
+        ("coverage", coverage_glob, "Ground truth covered", "covered_within_m"),
     ]
     for scene in sorted({s for s, _ in groups}, key=scene_sort_key):
-        for kind, pattern, heading in panels:
+        for kind, pattern, heading, key in panels:
             columns: dict[str, dict[str, Path]] = {}
+            keys = []
             for planner in sorted({p for s, p in groups if s == scene}, key=method_sort_key):
                 for run in sorted(groups[(scene, planner)], key=lambda r: r.seed):
                     found = error_images(run, pattern)
                     if found:
                         columns[f"{method_name(planner)} (seed {run.seed})"] = found
+                        keys.append(panel_keys(run)[key])
                         break
             if columns:
-                fig = plot_error_panel(columns, title=f"{heading}: {scene_name(scene)}")
+                if len(set(keys)) > 1:
+                    log.warning(
+                        "%s: the %s pictures use different keys %s; the panel shows the first",
+                        scene,
+                        kind,
+                        keys,
+                    )
+                fig = plot_error_panel(columns, title=f"{heading}: {scene_name(scene)}", **{key: keys[0]})
                 written[kind] += save_figure(fig, out_dir / f"{kind}_{scene}", dpi)
             else:
                 log.info("%s: no evaluation images matching %s, no %s panel", scene, pattern, kind)

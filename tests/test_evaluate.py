@@ -27,7 +27,7 @@ from evaluate.metrics import (
 from evaluate.record import write_metrics
 from evaluate.run import evaluate_reconstruction, format_region, parse_region
 from evaluate.settings import EvaluationSettings, threshold_key
-from evaluate.visualise import VIEW_NAMES, error_colors, splat
+from evaluate.visualise import VIEW_NAMES, error_colors, save_view_png, splat, view_pixels
 from planner.base import Plan, write_plan
 from scene.base import Box
 from scene.camera import Intrinsics
@@ -429,6 +429,23 @@ def test_splat_draws_the_nearest_point_at_its_pixel():
     image = splat(points, colors, viewpoint, intrinsics, radius_px=1)
     assert (image == (0, 0, 255)).all(axis=2).sum() == 9 and (image == (255, 0, 0)).all(axis=2).sum() == 0
     assert (image == (0, 255, 0)).all(axis=2).sum() == 9
+
+
+@pytest.mark.parametrize("colorbar", [None, {"vmax_m": 0.2, "colormap": "turbo"}])
+def test_view_pixels_cuts_a_saved_view_to_its_picture(tmp_path, colorbar):
+    import matplotlib.pyplot as plt
+
+    # A 60 x 40 px orange block in a white 300 x 200 view: the cut must be that block, scaled as the
+    # axes scale the view, with no pixel of the title, colour bar or legend.
+    view = np.full((200, 300, 3), 255, np.uint8)
+    view[80:120, 100:160] = (255, 128, 0)
+    path = save_view_png(tmp_path / "view.png", view, title="a long title " * 3, colorbar=colorbar)
+    cut = view_pixels(plt.imread(path))[..., :3]
+    scale = cut.shape[1] / 60.0
+    assert 0.8 < scale < 2.0
+    assert cut.shape[0] == pytest.approx(40 * scale, abs=2)
+    inner = cut[2:-2, 2:-2]
+    np.testing.assert_allclose(inner.reshape(-1, 3).mean(axis=0), [1.0, 128 / 255, 0.0], atol=0.02)
 
 
 def test_error_visualisation_colours_and_files(tmp_path, sphere):

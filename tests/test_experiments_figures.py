@@ -106,6 +106,19 @@ def test_error_panel_shows_each_methods_images(tmp_path):
             np.testing.assert_allclose(shown[..., 2], 60 * row / 255.0, atol=1e-6)
 
 
+def test_error_panel_draws_one_key_for_all_pictures(tmp_path):
+    path = tmp_path / "view.png"
+    Image.fromarray(np.full((20, 30, 3), 90, np.uint8)).save(path)
+    images = {"Ours": {"error_nadir.png": path}}
+    fig = figures.plot_error_panel(images, error_scale=(0.2, "turbo"))
+    bars = [ax for ax in fig.axes if ax.get_label() == figures.COLOUR_BAR_LABEL]
+    assert len(bars) == 1 and not fig.legends
+    np.testing.assert_allclose(bars[0].get_ylim(), [0.0, 0.2])
+    fig = figures.plot_error_panel(images, covered_within_m=0.05)
+    assert [t.get_text() for t in fig.legends[0].get_texts()] == ["within 50 mm", "missed"]
+    assert not [ax for ax in fig.axes if ax.get_label() == figures.COLOUR_BAR_LABEL]
+
+
 def test_decimate_mesh_keeps_the_shape():
     sphere = trimesh.creation.icosphere(subdivisions=4, radius=5.0)  # 5120 faces
     small = figures.decimate_mesh(sphere, 500)
