@@ -270,6 +270,24 @@ def disparity_search_range(pair: RectifiedPair, depth: np.ndarray, max_num_dispa
     return min_disp, int(min(max(num, 16), max_num_disparities))
 
 
+def textured_pixels(gray: np.ndarray, window_px: int, min_std: float) -> np.ndarray:
+    """Pixels (H, W) bool whose ``window_px`` square neighbourhood has a grey-level standard deviation
+    of at least ``min_std`` (0-255 scale).
+
+    SGBM's path costs carry a disparity across a textureless region: the uniform sky beside a tower
+    takes the tower's depth and fuses into a cloud of sky-coloured points around it (the cathedral's
+    lawnmower flight: 98 % of its points off by more than 0.5 m above 30 m were sky blue). Rendered
+    sky has a local deviation below 0.5 grey levels, textured surfaces above 4 (1st percentile).
+    """
+    if int(window_px) < 1:
+        raise ValueError(f"reconstruct.dense.texture_window_px must be >= 1, got {window_px}")
+    g = np.asarray(gray, dtype=np.float32)
+    size = (int(window_px), int(window_px))
+    mean = cv2.boxFilter(g, -1, size, borderType=cv2.BORDER_REFLECT)
+    mean_sq = cv2.boxFilter(g * g, -1, size, borderType=cv2.BORDER_REFLECT)
+    return np.sqrt(np.maximum(mean_sq - mean * mean, 0.0)) >= float(min_std)
+
+
 def pair_depth(
     ref: View, src: View, ref_gray: np.ndarray, src_gray: np.ndarray, ref_points: np.ndarray, cfg: Mapping
 ) -> np.ndarray | None:
@@ -336,6 +354,9 @@ def pair_depth(
     with np.errstate(invalid="ignore", divide="ignore"):
         depth = (z_rect / scale).astype(np.float32)
     depth[~(depth > 0)] = np.nan
+    min_std = float(cfg["min_texture_std"])
+    if min_std > 0.0:
+        depth[~textured_pixels(ref_gray, int(cfg["texture_window_px"]), min_std)] = np.nan
     return depth
 
 

@@ -27,6 +27,7 @@ from reconstruct.dense import (
     normals_from_depth,
     pair_depth,
     prepare_workspace,
+    textured_pixels,
     write_maps,
 )
 from reconstruct.errors import ReconstructionError
@@ -263,6 +264,43 @@ def test_sgbm_pair_depth_of_a_textured_plane():
     rel = np.abs(depth[valid] - truth[valid]) / truth[valid]
     assert np.median(rel) < 0.002
     assert np.percentile(rel, 95) < 0.01
+
+
+def test_sgbm_gives_the_uniform_sky_no_depth():
+    """A uniform band (rendered sky) above a textured plane: SGBM alone fills it with depth; the
+    texture mask leaves it empty and keeps the plane."""
+    intr = Intrinsics(320, 240, 60.0)
+    ref, src = plane_views(intr, [(0.0, 0.0), (3.0, 1.0)], height=12.0)
+    texture = noise_texture(1024, seed=3)
+    images = [
+        raycast_box_world([], texture, 0.02, view.rotation, view.translation, intr) for view in (ref, src)
+    ]
+    for image in images:
+        image[:100] = 200  # the top 100 rows of both views: sky
+    points = np.random.default_rng(0).uniform([-3, -2, 0], [3, 2, 0], (50, 3))
+    cfg = reconstruct_cfg().dense
+    assert cfg.min_texture_std > 0
+    unmasked = pair_depth(
+        ref, src, images[0], images[1], points, OmegaConf.merge(cfg, {"min_texture_std": 0})
+    )
+    depth = pair_depth(ref, src, images[0], images[1], points, cfg)
+    sky, plane = slice(0, 100 - cfg.texture_window_px), slice(100 + cfg.texture_window_px, None)
+    assert np.isfinite(unmasked[sky]).mean() > 0.5  # the defect the mask exists for
+    assert not np.isfinite(depth[sky]).any()
+    assert np.isfinite(depth[plane]).mean() == pytest.approx(np.isfinite(unmasked[plane]).mean(), abs=0.02)
+    valid = np.isfinite(depth[plane])
+    truth = plane_depth(ref, 0.0)[plane]
+    assert np.median(np.abs(depth[plane][valid] - truth[valid]) / truth[valid]) < 0.002
+
+
+def test_textured_pixels_by_local_deviation():
+    gray = np.full((40, 60), 120, np.uint8)
+    gray[:, 30:] = np.random.default_rng(1).integers(0, 256, (40, 30))
+    mask = textured_pixels(gray, 7, 2.0)
+    assert not mask[:, :27].any()  # uniform, farther than half a window from the noise
+    assert mask[:, 30:].all()
+    with pytest.raises(ValueError, match="texture_window_px"):
+        textured_pixels(gray, 0, 2.0)
 
 
 def test_fusion_of_plane_depth_maps_lies_on_the_plane(tmp_path):
