@@ -22,8 +22,8 @@ VIEW_NAMES = ("oblique_ne", "oblique_nw", "oblique_sw", "oblique_se", "nadir")
 COVERED_RGB = (44, 160, 44)
 MISSED_RGB = (214, 39, 40)
 BACKGROUND_RGB = (255, 255, 255)
-# Where save_view_png draws the view (left, bottom, width, height as figure fractions); the title sits
-# above this box and the colour bar or legend to its right, so view_pixels can cut them off.
+# Where save_view_png draws the view (left, bottom, width, height as figure fractions). The colour bar
+# or legend sits right of this box; view_pixels cuts them and the title off.
 VIEW_AXES_BOX = (0.01, 0.02, 0.80, 0.90)
 
 
