@@ -355,6 +355,8 @@ def pair_depth(
         depth = (z_rect / scale).astype(np.float32)
     depth[~(depth > 0)] = np.nan
     min_std = float(cfg["min_texture_std"])
+    if not min_std >= 0.0:
+        raise ValueError(f"reconstruct.dense.min_texture_std must be >= 0 (0 disables it), got {min_std}")
     if min_std > 0.0:
         depth[~textured_pixels(ref_gray, int(cfg["texture_window_px"]), min_std)] = np.nan
     return depth

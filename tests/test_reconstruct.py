@@ -291,6 +291,8 @@ def test_sgbm_gives_the_uniform_sky_no_depth():
     valid = np.isfinite(depth[plane])
     truth = plane_depth(ref, 0.0)[plane]
     assert np.median(np.abs(depth[plane][valid] - truth[valid]) / truth[valid]) < 0.002
+    with pytest.raises(ValueError, match="min_texture_std"):
+        pair_depth(ref, src, images[0], images[1], points, OmegaConf.merge(cfg, {"min_texture_std": -1}))
 
 
 def test_textured_pixels_by_local_deviation():
