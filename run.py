@@ -127,6 +127,7 @@ def main(cfg: DictConfig) -> None:
     }
     log.info("run directory: %s", run_dir)
     write_metrics = stage("evaluate.record", "write_metrics")
+    stage("evaluate.record", "code_revision")()  # before the stages import their code
     start = time.perf_counter()
     try:
         run_cell(cfg, run_dir, record)

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import functools
 import math
 import platform
+import subprocess
 from collections.abc import Mapping
 from importlib import metadata
 from pathlib import Path
@@ -11,6 +13,7 @@ from pathlib import Path
 from scene.io import write_json_atomic
 
 METRICS_FILE = "metrics.json"
+PROJECT_ROOT = Path(__file__).resolve().parents[1]
 # Libraries whose versions go into every record (the numbers depend on them).
 RECORDED_LIBRARIES = (
     "numpy",
@@ -37,6 +40,30 @@ def library_versions() -> dict:
     return versions
 
 
+@functools.cache
+def code_revision() -> dict:
+    """``{"code_commit": <40-hex>, "code_dirty": bool}`` of the project's git checkout.
+
+    Read once per process: a process runs the code it imported when it started, so run.py reads it
+    at the start of a cell and a later commit in the same tree does not relabel the cell.
+    ``code_dirty`` is true when tracked files differ from the commit. Both are None outside a git
+    checkout or without git.
+    """
+
+    def git(*args: str) -> str | None:
+        try:
+            done = subprocess.run(
+                ["git", "-C", str(PROJECT_ROOT), *args], capture_output=True, text=True, timeout=10
+            )
+        except (OSError, subprocess.TimeoutExpired):
+            return None
+        return done.stdout.strip() if done.returncode == 0 else None
+
+    commit = git("rev-parse", "HEAD")
+    status = git("status", "--porcelain", "--untracked-files=no") if commit else None
+    return {"code_commit": commit, "code_dirty": None if status is None else bool(status)}
+
+
 def run_identity(cfg: Mapping | None) -> dict:
     """``scene``, ``planner``, ``seed``, ``experiment`` from a composed run config (None where absent)."""
     cfg = cfg or {}
@@ -56,7 +83,7 @@ def run_identity(cfg: Mapping | None) -> dict:
 
 def write_metrics(run_dir: str | Path, record: Mapping, cfg: Mapping | None = None) -> Path:
     """Write ``run_dir/metrics.json`` atomically: the flat ``record``, plus the config's
-    scene/planner/seed where the record lacks them, plus the library versions.
+    scene/planner/seed where the record lacks them, plus the library versions and the code revision.
 
     Args:
         run_dir: the run directory.
@@ -78,7 +105,7 @@ def write_metrics(run_dir: str | Path, record: Mapping, cfg: Mapping | None = No
         if not isinstance(key, str):
             raise TypeError(f"metrics record keys must be strings, got {key!r}")
         out[key] = _scalar(key, value)
-    for key, value in library_versions().items():
+    for key, value in {**library_versions(), **code_revision()}.items():
         out.setdefault(key, value)
     return write_json_atomic(Path(run_dir) / METRICS_FILE, out)
 

@@ -5,6 +5,8 @@
 writes ``table1.{md,tex,csv}``, ``table2.{md,tex,csv}``, ``surfaces.{md,tex,csv}`` (completeness
 at 0.050 m per kind of surface: where a flight misses), ``tables.md`` (all three, for reading),
 ``all_metrics.csv`` (every numeric metric summarised) and ``runs.csv`` (one row per run).
+``tables.md`` ends with the code revisions the runs came from; runs of several revisions are
+flagged (a table that mixes code versions compares more than the planners).
 Across seeds a cell shows mean ± sample standard deviation (ddof 1) over the runs that succeeded.
 """
 
@@ -395,6 +397,39 @@ def _numeric_specs(runs: pd.DataFrame) -> list[MetricSpec]:
     return specs
 
 
+UNRECORDED_REVISION = "unrecorded"
+
+
+def code_provenance(runs: pd.DataFrame) -> tuple[str, bool]:
+    """A Markdown paragraph naming the code revisions of ``runs`` (``code_commit``, ``code_dirty``
+    of metrics.json) and the cells of each, and whether the code behind the cells may differ: the
+    runs span several revisions, or one lacks a revision or ran with uncommitted changes."""
+    none = pd.Series(None, index=runs.index, dtype=object)
+    commits, dirty = runs.get("code_commit", none), runs.get("code_dirty", none)
+    known = commits.map(lambda c: isinstance(c, str) and bool(c))
+    labels = commits.where(known, UNRECORDED_REVISION).map(
+        lambda c: c[:10] if c != UNRECORDED_REVISION else c
+    )
+    labels = labels.where(dirty.map(lambda d: d is not True), labels + " with uncommitted changes")
+    several_seeds = runs["seed"].nunique() > 1
+    cells = [
+        f"{scene_name(scene)} {method}" + (f" seed {int(seed)}" if several_seeds else "")
+        for scene, method, seed in zip(runs["scene"], runs["method"], runs["seed"], strict=True)
+    ]
+    uncertain = labels.nunique() > 1 or not known.all() or (dirty == True).any()  # noqa: E712
+    if labels.nunique() == 1:
+        text = f"**Code.** All {len(runs)} runs: revision {labels.iloc[0]}."
+    else:
+        parts = [
+            f"{label} ({len(index)}: {', '.join(cells[i] for i in runs.index.get_indexer(index))})"
+            for label, index in labels.groupby(labels, sort=False).groups.items()
+        ]
+        text = f"**Code.** The runs come from {labels.nunique()} revisions: " + "; ".join(parts) + "."
+    if uncertain:
+        text += " Differences between these cells may come from the code as well as the planners."
+    return text + "\n", uncertain
+
+
 def write_tables(tables: dict[str, pd.DataFrame], out_dir: str | Path) -> list[Path]:
     """Write the tables of ``build_tables`` into ``out_dir`` atomically; return the files written."""
     out_dir = Path(out_dir)
@@ -412,7 +447,7 @@ def write_tables(tables: dict[str, pd.DataFrame], out_dir: str | Path) -> list[P
         "surfaces.md": surfaces_md,
         "surfaces.tex": to_latex(tables["surfaces"], TABLE_SURFACES, TABLE_SURFACES_CAPTION, "tab:surfaces"),
         "surfaces.csv": summary_csv(tables["surfaces"]),
-        "tables.md": table1_md + "\n" + table2_md + "\n" + surfaces_md,
+        "tables.md": "\n".join((table1_md, table2_md, surfaces_md, code_provenance(tables["runs"])[0])),
         "all_metrics.csv": summary_csv(tables["all_metrics"]),
         "runs.csv": tables["runs"].to_csv(index=False, lineterminator="\n"),
     }
@@ -442,6 +477,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     runs = tables["runs"]
     n_failed = int((runs["status"] != "ok").sum())
     print(f"{len(runs)} runs ({n_failed} failed) -> {len(written)} files in {args.out}")
+    provenance, mixed = code_provenance(runs)
+    if mixed:
+        log.warning(provenance.replace("**", "").strip())
     print(to_markdown(tables["table1"], TABLE_I, "Table I"))
     print(to_markdown(tables["table2"], TABLE_II, "Table II"))
     return 0

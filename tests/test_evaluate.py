@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +13,7 @@ import pytest
 import trimesh
 from omegaconf import OmegaConf
 
+from evaluate import record as run_record
 from evaluate.__main__ import _load_group_config
 from evaluate.__main__ import main as cli_main
 from evaluate.cost import collect_cost_metrics
@@ -348,6 +351,30 @@ def test_write_metrics_is_flat_with_identity_and_versions(tmp_path):
         write_metrics(tmp_path, {"nested": {"a": 1}})
     assert sorted(p.name for p in tmp_path.iterdir()) == ["metrics.json"]  # no temporary file left
     assert json.loads(path.read_text())["acc90_m"] == 0.12  # the failed write kept the old file
+
+
+def test_metrics_record_the_code_revision(tmp_path, monkeypatch):
+    git = shutil.which("git")
+    if git is None or not (run_record.PROJECT_ROOT / ".git").exists():
+        pytest.skip("not a git checkout")
+    head = subprocess.run(
+        [git, "-C", str(run_record.PROJECT_ROOT), "rev-parse", "HEAD"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.strip()
+    record = json.loads(write_metrics(tmp_path, {"acc90_m": 0.1}).read_text())
+    assert len(head) == 40 and record["code_commit"] == head
+    assert isinstance(record["code_dirty"], bool)
+    # Outside a checkout both are null rather than a wrong revision; the value is read once per process.
+    run_record.code_revision.cache_clear()
+    monkeypatch.setattr(run_record, "PROJECT_ROOT", tmp_path)
+    try:
+        assert run_record.code_revision() == {"code_commit": None, "code_dirty": None}
+        monkeypatch.setattr(run_record, "PROJECT_ROOT", tmp_path / "elsewhere")
+        assert run_record.code_revision()["code_commit"] is None  # cached, not re-read
+    finally:
+        run_record.code_revision.cache_clear()
 
 
 def test_collect_cost_metrics_from_a_run_directory(tmp_path):

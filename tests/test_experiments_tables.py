@@ -283,6 +283,29 @@ def test_several_directories_and_reruns(study, tmp_path):
     assert [r.run_dir for r in runs if (r.scene, r.planner) == ("tomb", "smith")] == [rerun.resolve()]
 
 
+def test_tables_name_the_code_revisions_of_the_runs(tmp_path, caplog):
+    same = tmp_path / "same"
+    for planner in ("ours", "smith"):
+        write_run(same, "tomb", planner, 0, acc90_m=0.1, code_commit="a" * 40, code_dirty=False)
+    text, uncertain = tables.code_provenance(tables.build_tables([same])["runs"])
+    assert (text, uncertain) == ("**Code.** All 2 runs: revision aaaaaaaaaa.\n", False)
+
+    mixed = tmp_path / "mixed"
+    write_run(mixed, "tomb", "ours", 0, acc90_m=0.1, code_commit="a" * 40, code_dirty=False)
+    write_run(mixed, "tomb", "smith", 0, acc90_m=0.1, code_commit="b" * 40, code_dirty=True)
+    write_run(mixed, "church", "ours", 0, acc90_m=0.1)  # written before revisions were recorded
+    out = tmp_path / "out"
+    assert tables.main([str(mixed), "--out", str(out)]) == 0
+    paragraph = (out / "tables.md").read_text().strip().splitlines()[-1]
+    assert paragraph == (
+        "**Code.** The runs come from 3 revisions: "
+        "bbbbbbbbbb with uncommitted changes (1: Tomb Smith et al.); "
+        "aaaaaaaaaa (1: Tomb Ours); unrecorded (1: Church Ours). "
+        "Differences between these cells may come from the code as well as the planners."
+    )
+    assert "The runs come from 3 revisions" in caplog.text
+
+
 def test_bad_input_is_a_clear_error(tmp_path, capsys):
     empty = tmp_path / "empty"
     empty.mkdir()
