@@ -599,6 +599,9 @@ def _fuse_atomic(workspace: Path, output_ply: Path, cfg: Mapping, names) -> int:
 
     def writer(tmp: Path) -> None:
         holder["n"] = fuse(workspace, tmp, cfg, names)
+        # pycolmap also writes which images saw each point (<ply>.vis, ~70 MB a cell); nothing
+        # here reads it, and under the temporary name it would be left behind.
+        tmp.with_name(tmp.name + ".vis").unlink(missing_ok=True)
 
     write_atomic(output_ply, writer)
     return holder["n"]

@@ -9,11 +9,24 @@ from collections.abc import Callable
 from pathlib import Path
 
 
+def _process_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+# Read once at import (os.umask can only be read by setting it, which would race with threads that
+# create files): temporary files are created 0600, and the renamed result gets the mode that a plain
+# open() would have given it.
+FILE_MODE = 0o666 & ~_process_umask()
+
+
 def write_atomic(path: str | os.PathLike, writer: Callable[[Path], None]) -> Path:
     """Call ``writer(tmp_path)`` on a temporary file beside ``path``, then rename it into place.
 
     The temporary file keeps ``path``'s suffix so that writers which pick a format by extension
-    (Open3D, trimesh, OpenCV) still work.
+    (Open3D, trimesh, OpenCV) still work. The result has the usual mode (``FILE_MODE``: 0644 under
+    the common umask 022), not the temporary file's 0600.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -22,6 +35,7 @@ def write_atomic(path: str | os.PathLike, writer: Callable[[Path], None]) -> Pat
     tmp_path = Path(tmp)
     try:
         writer(tmp_path)
+        os.chmod(tmp_path, FILE_MODE)
         os.replace(tmp_path, path)
     except BaseException:
         tmp_path.unlink(missing_ok=True)

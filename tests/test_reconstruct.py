@@ -432,6 +432,8 @@ def test_reconstruct_flight_registers_aligns_and_densifies(box_reconstruction):
     )
     for name in ("database.db", "sparse/images.bin", "dense.ply", "recon.json"):
         assert (out_dir / name).exists(), name
+    # No temporary left behind (fusion's <ply>.vis sidecar used to stay under the temporary name).
+    assert not [p.name for p in out_dir.iterdir() if p.name.startswith(".")]
     assert Path(record["colmap_log"]).stat().st_size > 1000
     assert "Registering image" in Path(record["colmap_log"]).read_text()
     import open3d as o3d
