@@ -536,9 +536,12 @@ def compute_depth_maps_cuda(workspace: Path, cfg: Mapping) -> dict[str, int]:
     return {p.name[: -len(DEPTH_SUFFIX)]: 1 for p in (stereo / "depth_maps").glob(f"*{DEPTH_SUFFIX}")}
 
 
-def fuse(workspace: Path, output_ply: Path, cfg: Mapping, names) -> int:
+def fuse(workspace: Path, output_ply: Path, cfg: Mapping, names, deterministic: bool = False) -> int:
     """Fuse the workspace's geometric depth/normal maps of ``names`` into ``output_ply``; return the
     number of fused points. The PLY carries positions, normals and colours (model frame, metres).
+
+    ``deterministic`` fuses on one thread: COLMAP's fusion threads share the "pixel already fused"
+    masks, so which thread claims a pixel first (and so the cloud) changed from run to run.
     """
     workspace = Path(workspace)
     write_text_atomic(workspace / "stereo" / "fusion.cfg", "".join(f"{n}\n" for n in sorted(names)))
@@ -549,6 +552,8 @@ def fuse(workspace: Path, output_ply: Path, cfg: Mapping, names) -> int:
     options.max_depth_error = float(fcfg["max_depth_error"])
     options.max_normal_error = float(fcfg["max_normal_error"])
     options.max_image_size = int(cfg["max_image_size"])
+    if deterministic:
+        options.num_threads = 1
     fused = pycolmap.stereo_fusion(
         output_ply,
         workspace,
@@ -560,7 +565,9 @@ def fuse(workspace: Path, output_ply: Path, cfg: Mapping, names) -> int:
     return int(fused.num_points3D()) if hasattr(fused, "num_points3D") else -1
 
 
-def dense_reconstruct(sparse_dir: Path, image_dir: Path, out_dir: Path, cfg: Mapping) -> dict:
+def dense_reconstruct(
+    sparse_dir: Path, image_dir: Path, out_dir: Path, cfg: Mapping, deterministic: bool = False
+) -> dict:
     """Workspace, depth maps (CPU or CUDA back-end) and fusion into ``out_dir/dense.ply``.
 
     Args:
@@ -568,6 +575,7 @@ def dense_reconstruct(sparse_dir: Path, image_dir: Path, out_dir: Path, cfg: Map
         image_dir: the flight's images.
         out_dir: where ``dense/`` (the workspace) and ``dense.ply`` go.
         cfg: the ``reconstruct.dense`` config.
+        deterministic: the same cloud, bit for bit, from the same model and images (see ``fuse``).
 
     Returns:
         ``backend``, ``dense_time_s`` (s), ``n_depth_maps``, ``n_dense_points``, ``dense_path``.
@@ -584,7 +592,7 @@ def dense_reconstruct(sparse_dir: Path, image_dir: Path, out_dir: Path, cfg: Map
     output_ply = Path(out_dir) / "dense.ply"
     n_points = 0
     if names:
-        n_points = _fuse_atomic(workspace, output_ply, cfg, names)
+        n_points = _fuse_atomic(workspace, output_ply, cfg, names, deterministic)
     return {
         "backend": backend,
         "dense_time_s": time.perf_counter() - start,
@@ -594,11 +602,11 @@ def dense_reconstruct(sparse_dir: Path, image_dir: Path, out_dir: Path, cfg: Map
     }
 
 
-def _fuse_atomic(workspace: Path, output_ply: Path, cfg: Mapping, names) -> int:
+def _fuse_atomic(workspace: Path, output_ply: Path, cfg: Mapping, names, deterministic: bool) -> int:
     holder = {}
 
     def writer(tmp: Path) -> None:
-        holder["n"] = fuse(workspace, tmp, cfg, names)
+        holder["n"] = fuse(workspace, tmp, cfg, names, deterministic)
         # pycolmap also writes which images saw each point (<ply>.vis, ~70 MB a cell); nothing
         # here reads it, and under the temporary name it would be left behind.
         tmp.with_name(tmp.name + ".vis").unlink(missing_ok=True)

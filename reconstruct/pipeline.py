@@ -45,7 +45,15 @@ RECORD_FILE = "recon.json"
 PROXY_FILE = "proxy.ply"
 PROXY_RECORD_FILE = "proxy.json"
 # The config sections a flight's reconstruction depends on (the proxy section does not matter here).
-FLIGHT_CONFIG_KEYS = ("min_images", "min_registered_fraction", "gnss", "sfm", "align", "dense")
+FLIGHT_CONFIG_KEYS = (
+    "min_images",
+    "min_registered_fraction",
+    "gnss",
+    "sfm",
+    "align",
+    "dense",
+    "deterministic",
+)
 # Settings that change no result (only what is kept on disk): left out of every cache key.
 OUTPUT_ONLY_KEYS = ("keep_dense_workspace",)
 
@@ -186,6 +194,7 @@ def reconstruct_flight(image_dir, out_dir, cfg: Mapping, seed: int) -> dict:
         write_json_atomic(out_dir / RECORD_FILE, exc.record | {"content_key": key})
         raise
     record |= {"status": "ok", "cached": False, "colmap_log": _newest_log(out_dir), "content_key": key}
+    record["deterministic"] = bool(cfg["deterministic"])
     write_json_atomic(out_dir / RECORD_FILE, record)
     return record
 
@@ -193,7 +202,8 @@ def reconstruct_flight(image_dir, out_dir, cfg: Mapping, seed: int) -> dict:
 def _reconstruct(
     flight: Flight, out_dir: Path, gnss: np.ndarray, sigma: float, cfg: Mapping, seed: int, record: dict
 ) -> dict:
-    sfm = run_sfm(flight, out_dir, gnss, sigma, cfg["sfm"], seed)
+    deterministic = bool(cfg["deterministic"])
+    sfm = run_sfm(flight, out_dir, gnss, sigma, cfg["sfm"], seed, deterministic)
     times = {f"{k}_time_s": v for k, v in sfm.times_s.items()}
     record |= times | {
         "align_time_s": sum(sfm.times_s.values()),
@@ -240,7 +250,7 @@ def _reconstruct(
     record["sparse_dir"] = str(sparse_dir)
     record["n_sparse_points"] = int(rec.num_points3D())
 
-    dense = dense_reconstruct(sparse_dir, flight.image_dir, out_dir, cfg["dense"])
+    dense = dense_reconstruct(sparse_dir, flight.image_dir, out_dir, cfg["dense"], deterministic)
     record |= {
         "dense_backend": dense["backend"],
         "dense_time_s": dense["dense_time_s"],
@@ -376,7 +386,7 @@ def build_proxy(
                 recon | {"status": "failed", "stage": "proxy"},
             )
         bounds = Box(tuple(lo.tolist()), tuple(hi.tolist()))
-    mesh = poisson_proxy(recon["dense_ply"], bounds, cfg)
+    mesh = poisson_proxy(recon["dense_ply"], bounds, cfg, bool(cfg["deterministic"]))
     write_atomic(cache_dir / PROXY_FILE, lambda p: mesh.export(p))
     proxy_record = {
         "status": "ok",

@@ -108,7 +108,7 @@ def degraded_ground_truth(scene: Scene, cfg: Mapping, seed: int) -> trimesh.Trim
     return out
 
 
-def poisson_proxy(dense_ply, bounds: Box, cfg: Mapping) -> trimesh.Trimesh:
+def poisson_proxy(dense_ply, bounds: Box, cfg: Mapping, deterministic: bool = False) -> trimesh.Trimesh:
     """Proxy mesh from a fused dense cloud: crop, voxel-downsample, screened Poisson, density trim,
     crop again, decimate.
 
@@ -117,6 +117,8 @@ def poisson_proxy(dense_ply, bounds: Box, cfg: Mapping) -> trimesh.Trimesh:
         bounds: region of interest in world metres (e.g. the flight's camera hull plus a margin);
             points outside it are dropped and the mesh is cut back to it.
         cfg: the ``reconstruct`` config (its ``proxy`` section) or the ``proxy`` section.
+        deterministic: solve the Poisson system on one thread (the threaded solver's sums, and so
+            the mesh's last bits, change from run to run).
 
     Returns:
         The proxy mesh in world metres with at most ``proxy.face_budget`` faces.
@@ -153,7 +155,7 @@ def poisson_proxy(dense_ply, bounds: Box, cfg: Mapping) -> trimesh.Trimesh:
     )
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         mesh, densities = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
-            cloud, depth=int(pcfg["poisson_depth"]), linear_fit=False
+            cloud, depth=int(pcfg["poisson_depth"]), linear_fit=False, n_threads=1 if deterministic else -1
         )
     densities = np.asarray(densities)
     quantile = float(pcfg["density_quantile"])

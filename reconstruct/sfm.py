@@ -53,10 +53,17 @@ class SfmResult:
     n_models: int = 0
 
 
-def sfm_options(cfg: Mapping, seed: int = 0) -> SfmOptions:
-    """Map the ``reconstruct.sfm`` config onto pycolmap options (the one place this is done)."""
+def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> SfmOptions:
+    """Map the ``reconstruct.sfm`` config onto pycolmap options (the one place this is done).
+
+    ``deterministic`` runs the mapper (and its bundle adjustments) on one thread: Ceres' threaded
+    solvers sum in an order that changes from run to run, and the mapper's next-image choice follows
+    those last bits. Extraction and matching give the same database on any thread count (image ids
+    fixed by ``extract_features``, RANSAC seeded), so they keep every core.
+    """
     ecfg, mcfg, pcfg = cfg["extraction"], cfg["matching"], cfg["mapping"]
     threads = int(cfg.get("num_threads", -1))
+    mapper_threads = 1 if deterministic else threads
     matching_method = str(mcfg["method"])
     if matching_method not in MATCHING_METHODS:
         raise ValueError(
@@ -95,7 +102,8 @@ def sfm_options(cfg: Mapping, seed: int = 0) -> SfmOptions:
     sequential.num_threads = threads
 
     incremental = pycolmap.IncrementalPipelineOptions()
-    incremental.num_threads = threads
+    incremental.num_threads = mapper_threads
+    incremental.mapper.num_threads = mapper_threads
     incremental.random_seed = int(seed)
     incremental.min_model_size = int(pcfg["min_model_size"])
     incremental.ba_refine_focal_length = bool(pcfg["refine_focal_length"])
@@ -107,7 +115,8 @@ def sfm_options(cfg: Mapping, seed: int = 0) -> SfmOptions:
     incremental.use_robust_loss_on_prior_position = bool(pcfg["use_prior_position"])
 
     global_ = pycolmap.GlobalPipelineOptions()
-    global_.num_threads = threads
+    global_.num_threads = mapper_threads
+    global_.mapper.num_threads = mapper_threads
     global_.random_seed = int(seed)
     global_.mapper.random_seed = int(seed)
     global_.mapper.bundle_adjustment.refine_focal_length = bool(pcfg["refine_focal_length"])
@@ -139,6 +148,17 @@ def extract_features(database_path: Path, flight: Flight, options: SfmOptions) -
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "PINHOLE"
     reader.camera_params = ",".join(repr(float(v)) for v in (intr.focal_px, intr.focal_px, intr.cx, intr.cy))
+    # Images enter the database one by one in flight order first: the extractor's worker threads
+    # would otherwise insert them as they finish, so image ids (and every tie the mapper breaks by
+    # id) changed from run to run. The extractor then fills in the keypoints of the existing rows.
+    pycolmap.Database.open(database_path).close()  # import_images needs the file to exist
+    pycolmap.import_images(
+        database_path,
+        flight.image_dir,
+        camera_mode=pycolmap.CameraMode.SINGLE,
+        image_names=list(flight.names),
+        options=reader,
+    )
     log.info("extracting SIFT features from %d images", len(flight))
     pycolmap.extract_features(
         database_path,
@@ -222,7 +242,13 @@ def map_reconstruction(
 
 
 def run_sfm(
-    flight: Flight, work_dir: Path, gnss_positions: np.ndarray, gnss_sigma_m: float, cfg: Mapping, seed: int
+    flight: Flight,
+    work_dir: Path,
+    gnss_positions: np.ndarray,
+    gnss_sigma_m: float,
+    cfg: Mapping,
+    seed: int,
+    deterministic: bool = False,
 ) -> SfmResult:
     """Extraction, pose priors, matching and mapping into ``work_dir/database.db``.
 
@@ -233,12 +259,13 @@ def run_sfm(
         gnss_sigma_m: their standard deviation in metres (the prior covariance).
         cfg: the ``reconstruct.sfm`` config.
         seed: seed of COLMAP's RANSAC and mapper.
+        deterministic: the same model, bit for bit, from the same inputs (see ``sfm_options``).
 
     Returns:
         The largest model (arbitrary frame) and wall times in seconds of ``extraction``, ``matching``
         and ``mapping``.
     """
-    options = sfm_options(cfg, seed)
+    options = sfm_options(cfg, seed, deterministic)
     pycolmap.set_random_seed(int(seed))
     work_dir = Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
