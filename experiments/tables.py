@@ -8,6 +8,10 @@ at 0.050 m per kind of surface: where a flight misses), ``tables.md`` (all three
 ``tables.md`` ends with the code revisions the runs came from; runs of several revisions are
 flagged (a table that mixes code versions compares more than the planners).
 Across seeds a cell shows mean ± sample standard deviation (ddof 1) over the runs that succeeded.
+
+With ``--noise-floor noise_floor.json`` (``experiments.noise_floor``) a method whose value lies closer
+to the best than the floor of that metric is tied for best and bold with it: the same cell run again
+moves by that much on its own. The tables then say which floor they used.
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ import io
 import logging
 import math
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,6 +29,7 @@ import numpy as np
 import pandas as pd
 
 from evaluate.metrics import SURFACE_CLASSES
+from experiments.noise_floor import read_floor
 from experiments.runs import (
     RunDirectoryError,
     load_runs,
@@ -119,20 +124,25 @@ TABLE_SURFACES_CAPTION = (
 )
 
 
-def summarise(runs: pd.DataFrame, specs: Sequence[MetricSpec]) -> pd.DataFrame:
+def summarise(
+    runs: pd.DataFrame, specs: Sequence[MetricSpec], noise_floor: Mapping[str, float] | None = None
+) -> pd.DataFrame:
     """Mean, spread and best flag of each metric per (scene, planner), in table order.
 
     Args:
         runs: one row per run (``experiments.runs.runs_frame``): scene, planner, method, seed,
             status, error and the metric columns.
         specs: the metrics to summarise.
+        noise_floor: metric -> run-to-run noise in the stored unit (``experiments.noise_floor``);
+            a value closer to the best than this is a tie and marked best too. None: exact ties only.
 
     Returns:
         A tidy frame with ``SUMMARY_COLUMNS``: one row per (scene, planner, metric). ``mean`` and
         ``std`` (sample, ddof 1; NaN below two runs) are in the shown unit over the successful runs
         with a finite value, ``n`` counts them, ``n_runs``/``n_failed`` count the group's runs and
         failures, ``errors`` lists the failed seeds' errors, ``best`` marks the best shown value of
-        the scene for metrics with a direction (ties all marked; only where two methods have a value).
+        the scene for metrics with a direction (ties all marked, within the noise floor when one is
+        given; only where two methods have a value).
     """
     missing = {"scene", "planner", "seed", "status"} - set(runs.columns)
     if missing:
@@ -181,8 +191,35 @@ def summarise(runs: pd.DataFrame, specs: Sequence[MetricSpec]) -> pd.DataFrame:
             if len(shown) < 2:
                 continue
             target = shown.min() if spec.better == "lower" else shown.max()
-            summary.loc[shown.index[shown == target], "best"] = True
+            summary.loc[shown.index[tied_with(shown, target, spec, noise_floor)], "best"] = True
     return summary
+
+
+def tied_with(
+    shown: pd.Series, target: float, spec: MetricSpec, noise_floor: Mapping[str, float] | None
+) -> pd.Series:
+    """Which ``shown`` values (in the shown unit) tie ``target``: equal as printed, or closer to it
+    than the metric's noise floor (stored unit, scaled here)."""
+    floor = float((noise_floor or {}).get(spec.column, 0.0)) * spec.scale
+    return (shown == target) | ((shown - target).abs() < floor)
+
+
+def floor_sentence(specs: Sequence[MetricSpec], noise_floor: Mapping[str, float] | None) -> str:
+    """The sentence under a table that names the noise floor its bolding used ('' without one)."""
+    if not noise_floor:
+        return ""
+    parts = [
+        f"{spec.label} {spec.format(noise_floor[spec.column] * spec.scale)}"
+        for spec in specs
+        if spec.better is not None and spec.column in noise_floor
+    ]
+    if not parts:
+        return ""
+    return (
+        "Bold: the best value and every value closer to it than the noise floor (a tie): "
+        + "; ".join(parts)
+        + "."
+    )
 
 
 def _error_summary(failed: pd.DataFrame) -> str:
@@ -278,8 +315,14 @@ def _note_marker(index: int) -> str:
     return letters[index % 26] * (index // 26 + 1)
 
 
-def to_markdown(summary: pd.DataFrame, specs: Sequence[MetricSpec], title: str = "") -> str:
-    """A Markdown table of ``summary`` (best cells in bold, failures as footnotes)."""
+def to_markdown(
+    summary: pd.DataFrame,
+    specs: Sequence[MetricSpec],
+    title: str = "",
+    noise_floor: Mapping[str, float] | None = None,
+) -> str:
+    """A Markdown table of ``summary`` (best cells in bold, failures as footnotes); with
+    ``noise_floor`` (the one ``summarise`` used) a sentence names the floor behind the bolding."""
     layout = _Layout(summary, specs)
     header = ["Scene", "Method"] + (["Runs"] if layout.show_runs else []) + [s.label for s in specs]
     align = [":--", ":--"] + (["--:"] if layout.show_runs else []) + ["--:"] * len(specs)
@@ -297,6 +340,9 @@ def to_markdown(summary: pd.DataFrame, specs: Sequence[MetricSpec], title: str =
             "Cells: mean ± sample standard deviation over the runs (seeds) that succeeded; "
             "Runs: succeeded/all.",
         ]
+    floor_text = floor_sentence(specs, noise_floor)
+    if floor_text:
+        lines += ["", floor_text]
     if layout.notes:
         lines.append("")
         lines += [f"({marker}) {text}  " for marker, text in layout.notes]
@@ -324,9 +370,18 @@ def latex_escape(text: str) -> str:
     return "".join(replacements.get(ch, ch) for ch in str(text))
 
 
-def to_latex(summary: pd.DataFrame, specs: Sequence[MetricSpec], caption: str, label: str) -> str:
+def to_latex(
+    summary: pd.DataFrame,
+    specs: Sequence[MetricSpec],
+    caption: str,
+    label: str,
+    noise_floor: Mapping[str, float] | None = None,
+) -> str:
     """A booktabs + multirow LaTeX table of ``summary`` in the paper's layout (needs makecell too)."""
     layout = _Layout(summary, specs)
+    floor_text = floor_sentence(specs, noise_floor)
+    if floor_text:
+        caption += " " + latex_escape(floor_text)
     columns = "ll" + ("r" if layout.show_runs else "") + "r" * len(specs)
     if layout.show_runs:
         caption += r" Mean $\pm$ sample standard deviation over the seeds that succeeded (Runs)."
@@ -365,8 +420,11 @@ def to_latex(summary: pd.DataFrame, specs: Sequence[MetricSpec], caption: str, l
     return "\n".join(lines) + "\n"
 
 
-def build_tables(run_paths: Sequence[str | Path]) -> dict[str, pd.DataFrame]:
-    """Load the runs under ``run_paths`` and summarise them.
+def build_tables(
+    run_paths: Sequence[str | Path], noise_floor: Mapping[str, float] | None = None
+) -> dict[str, pd.DataFrame]:
+    """Load the runs under ``run_paths`` and summarise them (ties within ``noise_floor``, see
+    ``summarise``).
 
     Returns:
         ``{"runs": per-run frame, "table1": Table I summary, "table2": Table II summary,
@@ -378,9 +436,9 @@ def build_tables(run_paths: Sequence[str | Path]) -> dict[str, pd.DataFrame]:
     runs = runs_frame(load_runs(run_paths))
     return {
         "runs": runs,
-        "table1": summarise(runs, TABLE_I),
-        "table2": summarise(runs, TABLE_II),
-        "surfaces": summarise(runs, TABLE_SURFACES),
+        "table1": summarise(runs, TABLE_I, noise_floor),
+        "table2": summarise(runs, TABLE_II, noise_floor),
+        "surfaces": summarise(runs, TABLE_SURFACES, noise_floor),
         "all_metrics": summarise(runs, _numeric_specs(runs)),
     }
 
@@ -430,22 +488,28 @@ def code_provenance(runs: pd.DataFrame) -> tuple[str, bool]:
     return text + "\n", uncertain
 
 
-def write_tables(tables: dict[str, pd.DataFrame], out_dir: str | Path) -> list[Path]:
-    """Write the tables of ``build_tables`` into ``out_dir`` atomically; return the files written."""
+def write_tables(
+    tables: dict[str, pd.DataFrame], out_dir: str | Path, noise_floor: Mapping[str, float] | None = None
+) -> list[Path]:
+    """Write the tables of ``build_tables`` into ``out_dir`` atomically; return the files written.
+    ``noise_floor`` is the one ``build_tables`` used (named under each table)."""
     out_dir = Path(out_dir)
     written = []
-    table1_md = to_markdown(tables["table1"], TABLE_I, "Table I. " + TABLE_I_CAPTION)
-    table2_md = to_markdown(tables["table2"], TABLE_II, "Table II. " + TABLE_II_CAPTION)
-    surfaces_md = to_markdown(tables["surfaces"], TABLE_SURFACES, TABLE_SURFACES_CAPTION)
+    floor = noise_floor
+    table1_md = to_markdown(tables["table1"], TABLE_I, "Table I. " + TABLE_I_CAPTION, floor)
+    table2_md = to_markdown(tables["table2"], TABLE_II, "Table II. " + TABLE_II_CAPTION, floor)
+    surfaces_md = to_markdown(tables["surfaces"], TABLE_SURFACES, TABLE_SURFACES_CAPTION, floor)
     files = {
         "table1.md": table1_md,
-        "table1.tex": to_latex(tables["table1"], TABLE_I, TABLE_I_CAPTION, "tab:recon_results"),
+        "table1.tex": to_latex(tables["table1"], TABLE_I, TABLE_I_CAPTION, "tab:recon_results", floor),
         "table1.csv": summary_csv(tables["table1"]),
         "table2.md": table2_md,
-        "table2.tex": to_latex(tables["table2"], TABLE_II, TABLE_II_CAPTION, "tab:align_results"),
+        "table2.tex": to_latex(tables["table2"], TABLE_II, TABLE_II_CAPTION, "tab:align_results", floor),
         "table2.csv": summary_csv(tables["table2"]),
         "surfaces.md": surfaces_md,
-        "surfaces.tex": to_latex(tables["surfaces"], TABLE_SURFACES, TABLE_SURFACES_CAPTION, "tab:surfaces"),
+        "surfaces.tex": to_latex(
+            tables["surfaces"], TABLE_SURFACES, TABLE_SURFACES_CAPTION, "tab:surfaces", floor
+        ),
         "surfaces.csv": summary_csv(tables["surfaces"]),
         "tables.md": "\n".join((table1_md, table2_md, surfaces_md, code_provenance(tables["runs"])[0])),
         "all_metrics.csv": summary_csv(tables["all_metrics"]),
@@ -463,25 +527,31 @@ def main(argv: Sequence[str] | None = None) -> int:
         "dirs", nargs="+", type=Path, help="run or multirun directories (searched recursively)"
     )
     parser.add_argument("--out", type=Path, required=True, help="directory for the tables")
+    parser.add_argument(
+        "--noise-floor",
+        type=Path,
+        help="noise_floor.json of experiments.noise_floor: values closer to the best than it tie",
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     if args.out.exists() and not args.out.is_dir():
         print(f"error: --out {args.out} exists and is not a directory", file=sys.stderr)
         return 2
     try:
-        tables = build_tables(args.dirs)
-    except RunDirectoryError as exc:
+        floor = read_floor(args.noise_floor) if args.noise_floor is not None else None
+        tables = build_tables(args.dirs, floor)
+    except (RunDirectoryError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    written = write_tables(tables, args.out)
+    written = write_tables(tables, args.out, floor)
     runs = tables["runs"]
     n_failed = int((runs["status"] != "ok").sum())
     print(f"{len(runs)} runs ({n_failed} failed) -> {len(written)} files in {args.out}")
     provenance, mixed = code_provenance(runs)
     if mixed:
         log.warning(provenance.replace("**", "").strip())
-    print(to_markdown(tables["table1"], TABLE_I, "Table I"))
-    print(to_markdown(tables["table2"], TABLE_II, "Table II"))
+    print(to_markdown(tables["table1"], TABLE_I, "Table I", floor))
+    print(to_markdown(tables["table2"], TABLE_II, "Table II", floor))
     return 0
 
 

@@ -31,7 +31,7 @@ from reconstruct.dense import (
     write_maps,
 )
 from reconstruct.errors import ReconstructionError
-from reconstruct.flight import Flight, simulate_gnss
+from reconstruct.flight import Flight, read_flight, simulate_gnss
 from reconstruct.pipeline import build_proxy, flight_content_key, proxy_flight_config, reconstruct_flight
 from reconstruct.proxy import degraded_ground_truth, poisson_proxy
 from reconstruct.sfm import map_reconstruction, sfm_options
@@ -469,7 +469,6 @@ def test_reconstruct_flight_reuses_unchanged_outputs(box_flight, box_reconstruct
     assert again["cached"] is True
     assert again["content_key"] == record["content_key"]
     assert again["position_error_median_m"] == record["position_error_median_m"]
-    from reconstruct.flight import read_flight
 
     flight = read_flight(box_flight)
     key = flight_content_key(box_flight, flight, reconstruct_cfg(), 0)
@@ -656,8 +655,6 @@ def test_flight_key_ignores_render_timings_but_not_poses_or_pixels(box_flight, t
     import json
     import shutil
 
-    from reconstruct.flight import read_flight
-
     copy = Path(shutil.copytree(box_flight, tmp_path / "flight"))
     key = flight_content_key(copy, read_flight(copy), reconstruct_cfg(), 0)
     cameras_path = copy / "cameras.json"
@@ -686,3 +683,48 @@ def test_dense_workspace_can_be_dropped_without_changing_the_key(box_flight, box
     assert record["content_key"] == kept["content_key"]
     assert record["n_registered"] == kept["n_registered"] == 33
     assert reconstruct_flight(box_flight, tmp_path, cfg, seed=0)["cached"] is True
+
+
+def _model_state(sparse_dir: Path) -> tuple:
+    """Registered names, point count, camera centres and point positions of a written model."""
+    rec = pycolmap.Reconstruction(sparse_dir)
+    ids = sorted(rec.reg_image_ids())
+    names = [rec.image(i).name for i in ids]
+    centres = np.array([rec.image(i).projection_center() for i in ids])
+    points = np.array([rec.point3D(i).xyz for i in sorted(rec.points3D)])
+    return names, rec.num_points3D(), centres, points
+
+
+def test_deterministic_mode_reconstructs_a_flight_twice_to_the_bit(box_flight, tmp_path):
+    cfg = reconstruct_cfg(**{"deterministic": True, "proxy.dense": {}})
+    states, clouds, proxies = [], [], []
+    for attempt in range(2):
+        out_dir = tmp_path / f"attempt{attempt}"
+        mesh, record = build_proxy(box_flight, out_dir, cfg, seed=0)
+        assert record["deterministic"] is True and record["cached"] is False
+        states.append(_model_state(out_dir / "sparse"))
+        clouds.append((out_dir / "dense.ply").read_bytes())
+        proxies.append((out_dir / "proxy.ply").read_bytes())
+    (names_a, n_a, centres_a, points_a), (names_b, n_b, centres_b, points_b) = states
+    assert names_a == names_b and len(names_a) == 33
+    assert n_a == n_b > 1000
+    np.testing.assert_array_equal(centres_a, centres_b)  # to the bit, not within a tolerance
+    np.testing.assert_array_equal(points_a, points_b)
+    assert clouds[0] == clouds[1] and len(clouds[0]) > 100_000
+    assert proxies[0] == proxies[1]
+
+
+def test_deterministic_mode_is_part_of_the_flight_key(box_flight):
+    flight = read_flight(box_flight)
+    cfgs = [reconstruct_cfg(**{"deterministic": on}) for on in (False, True)]
+    keys = {flight_content_key(box_flight, flight, cfg, 0) for cfg in cfgs}
+    assert len(keys) == 2
+
+
+def test_image_ids_follow_the_flight_order(box_flight, box_reconstruction):
+    """The extractor's threads finish in any order; the database's ids must not follow them."""
+    out_dir, _ = box_reconstruction
+    flight = read_flight(box_flight)
+    with pycolmap.Database.open(out_dir / "database.db") as db:
+        by_id = sorted((image.image_id, image.name) for image in db.read_all_images())
+    assert [name for _, name in by_id] == list(flight.names)
