@@ -2,12 +2,15 @@
 
     python experiments/bench_reconstruct.py                      # 50, 100, 200 images of the tomb
     python experiments/bench_reconstruct.py --counts 50 100 --images DIR --out bench_out
+    python experiments/bench_reconstruct.py --counts 100 --modes default deterministic   # its cost
 
 The base flight is the tomb's exploratory lawnmower at 1024x768 (rendered once into
 ``OUT/base``, overlap raised until it has at least max(counts) images, or taken from ``--images``).
 Each count runs on the first N images of that flight (same density, growing area), in a fresh
 process so its peak memory is its own; the proxy stage (Poisson) is included. The machine is
-shared: the load average is printed with every row, compare ratios within one run.
+shared: the load average is printed with every row, compare ratios within one run. ``--modes``
+runs each count in the default mode and/or with ``reconstruct.deterministic=true``, one after the
+other; the CPU time (all threads of the process) is printed beside the wall time.
 """
 
 from __future__ import annotations
@@ -80,16 +83,19 @@ def subset_flight(base: Path, out_dir: Path, n_images: int) -> Path:
     return out_dir
 
 
-def run_one(image_dir: Path, out_dir: Path) -> dict:
-    """Reconstruct + proxy one flight in this process; return the record with peak memory (GB)."""
+def run_one(image_dir: Path, out_dir: Path, mode: str = "default") -> dict:
+    """Reconstruct + proxy one flight in this process; return the record with the wall and CPU
+    time (s) and peak memory (GB). ``mode`` ``deterministic`` sets ``reconstruct.deterministic``."""
     from omegaconf import OmegaConf
 
     from reconstruct.pipeline import build_proxy
 
     cfg = OmegaConf.load(ROOT / "conf" / "reconstruct" / "default.yaml")
-    start = time.perf_counter()
+    cfg.deterministic = mode == "deterministic"
+    start, cpu_start = time.perf_counter(), time.process_time()
     _, record = build_proxy(image_dir, out_dir, cfg, seed=0)
     record["total_time_s"] = time.perf_counter() - start
+    record["cpu_time_s"] = time.process_time() - cpu_start
     record["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
     return record
 
@@ -99,26 +105,30 @@ def main() -> None:
     parser.add_argument("--counts", type=int, nargs="+", default=[50, 100, 200])
     parser.add_argument("--images", type=Path, default=None, help="an existing rendered flight to cut")
     parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "bench_reconstruct")
-    parser.add_argument("--one", nargs=2, type=Path, metavar=("IMAGE_DIR", "OUT_DIR"), help=argparse.SUPPRESS)
+    parser.add_argument(
+        "--modes", nargs="+", choices=("default", "deterministic"), default=["default"], help="modes to time"
+    )
+    parser.add_argument("--one", nargs=3, metavar=("IMAGE_DIR", "OUT_DIR", "MODE"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
-        print("RESULT " + json.dumps(run_one(*args.one), default=str))
+        image_dir, out_dir, mode = args.one
+        print("RESULT " + json.dumps(run_one(Path(image_dir), Path(out_dir), mode), default=str))
         return
     if any(n < 3 for n in args.counts):
         parser.error("--counts must all be at least 3")
     base = args.images or render_base_flight(args.out / "base", max(args.counts))
     rows = []
-    header = f"{'images':>6} {'registered':>10} " + " ".join(f"{s[:-7]:>10}" for s in STAGES)
-    header += f" {'total':>8} {'peak GB':>8} {'pos med m':>9} {'points':>9} {'load':>10}"
+    header = f"{'images':>6} {'mode':>13} {'registered':>10} " + " ".join(f"{s[:-7]:>10}" for s in STAGES)
+    header += f" {'total':>8} {'cpu':>8} {'peak GB':>8} {'pos med m':>9} {'points':>9} {'load':>10}"
     print(header, flush=True)
-    for n in args.counts:
+    for n, mode in ((n, mode) for n in args.counts for mode in args.modes):
         flight = subset_flight(base, args.out / f"flight_{n}", n)
-        out_dir = args.out / f"recon_{n}"
+        out_dir = args.out / f"recon_{n}_{mode}"
         for stale in (out_dir / "recon.json", out_dir / "proxy.json"):
             stale.unlink(missing_ok=True)  # measure, never reuse
         load_before = os.getloadavg()[0]
         done = subprocess.run(
-            [sys.executable, __file__, "--one", str(flight), str(out_dir)],
+            [sys.executable, __file__, "--one", str(flight), str(out_dir), mode],
             cwd=ROOT,
             capture_output=True,
             text=True,
@@ -129,17 +139,17 @@ def main() -> None:
             continue
         record = json.loads(result[0][len("RESULT ") :])
         record["load"] = (load_before, os.getloadavg()[0])
-        rows.append((n, record))
+        rows.append((f"{n}_{mode}", record))
         print(
-            f"{n:>6} {record['n_registered']:>10} "
+            f"{n:>6} {mode:>13} {record['n_registered']:>10} "
             + " ".join(f"{record.get(s, float('nan')):>10.1f}" for s in STAGES)
-            + f" {record['total_time_s']:>8.1f} {record['peak_rss_gb']:>8.2f}"
+            + f" {record['total_time_s']:>8.1f} {record['cpu_time_s']:>8.1f} {record['peak_rss_gb']:>8.2f}"
             + f" {record['position_error_median_m']:>9.3f} {record['n_dense_points']:>9d}"
             + f" {record['load'][0]:>4.1f}->{record['load'][1]:<4.1f}",
             flush=True,
         )
     (args.out / "bench.json").parent.mkdir(parents=True, exist_ok=True)
-    (args.out / "bench.json").write_text(json.dumps({str(n): r for n, r in rows}, indent=1, default=str))
+    (args.out / "bench.json").write_text(json.dumps(dict(rows), indent=1, default=str))
     print(f"cpu cores: {os.cpu_count()}; records: {args.out / 'bench.json'}")
 
 
