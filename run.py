@@ -88,6 +88,15 @@ def run_cell(cfg: DictConfig, run_dir: Path, record: dict) -> None:
     start = time.perf_counter()
     plan = plan_fn(proxy, intrinsics, planner_params(cfg), cfg.seed)
     record["plan_time_s"] = time.perf_counter() - start
+    predicted_coverage = stage("experiments.observations", "predicted_coverage")
+    settings = stage("evaluate.settings", "EvaluationSettings").from_config(cfg.evaluate)
+    target_distance = float(cfg.survey.target_gsd_m) * intrinsics.focal_px
+    forecast = predicted_coverage(proxy, plan.viewpoints, intrinsics, target_distance, settings)
+    plan.info["predicted_coverage"] = {
+        "criteria": ">= 3 planned views within 1.3 d_t and 60 deg of the normal (experiments.observations)",
+        **forecast,
+    }
+    record.update(forecast)
     write_plan(plan, run_dir / "plan")
     record.update(n_viewpoints=len(plan.viewpoints), flight_length_m=plan.flight_length_m)
     log.info(

@@ -138,6 +138,25 @@ def observation_shares(
     return pd.DataFrame(rows)
 
 
+def predicted_coverage(
+    proxy: trimesh.Trimesh,
+    views: np.ndarray,
+    intrinsics,
+    target_distance_m: float,
+    settings: EvaluationSettings,
+    criteria: ObservationCriteria | None = None,
+) -> dict[str, float]:
+    """What a plan promises before it is flown: ``observation_shares`` on the proxy, every planned
+    view counted as registered. Returns ``predicted_well_observed_<class>_pct`` per surface class
+    (NaN for a class the proxy lacks), for ``plan.json`` and ``metrics.json``."""
+    shares = observation_shares(
+        proxy, views, intrinsics, target_distance_m, criteria or ObservationCriteria(), settings
+    )
+    return {
+        f"predicted_well_observed_{r.surface}_pct": float(r.well_observed_pct) for r in shares.itertuples()
+    }
+
+
 def registered_views(run_dir: Path) -> tuple[np.ndarray, int, bool]:
     """The rendered views of a run that SfM registered.
 

@@ -4,7 +4,8 @@ Notation: V viewpoints, P sampled surface points, ``visible`` the (V, P) matrix 
 ``direction`` (V, P, 3) the unit vectors u_v from each point to each camera centre,
 ``cos_incidence`` (V, P) the dot product n . u_v, ``distance`` (V, P) in metres.
 
-Point level (Eq. 1-5):  R_point = S_front * S_distance * S_parallax * S_count
+Point level, ``point_score: literal`` (Eq. 1-5 as printed):
+                        R_point = S_front * S_distance * S_parallax * S_count
   S_front     = max over visible views of max(0, n . u_v)                                  (Eq. 2)
   S_distance  = max over visible views of the per-observation distance score: 1 inside the
                 target range [d_lo, d_hi], linear down to 0 at d_lo - d_margin and d_hi + d_margin
@@ -14,6 +15,15 @@ Point level (Eq. 1-5):  R_point = S_front * S_distance * S_parallax * S_count
   S_parallax  = w1(sigma_alpha) * w3(sigma_alpha) with Smith et al.'s logistic constants   (Eq. 3)
   sigma_alpha = sqrt(sum_v arccos(u_v . u_bar)^2 / (|V_p| + eps)), u_bar the normalised sum  (Eq. 4)
   S_count     = min(1, |V_p| / k_count)                                                    (Eq. 5)
+Point level, ``point_score: per_view`` (the default; the paper leaves the aggregation open):
+  q_vp        = F(theta_vp) * D(d_vp): each observation's frontality and distance score together, F = 1
+                up to ``frontal_full_deg`` off the normal, linear in cos theta to 0 at ``frontal_cone_deg``
+  S_quality   = (1 / k_count) * sum of the k_count largest q_vp over the views (missing ones count 0)
+  S_parallax  = w1 w3 of sigma_alpha over the good views (q_vp > 0) only
+  R_point     = S_quality * S_parallax
+  Dense matching needs several views that are each close and frontal: in the literal form one close
+  frontal view plus two far or grazing ones give the full score (each factor takes its own best view
+  and every view in the 80 deg, 1.7 d_t reach counts); here they give 1/3 of it.
 Viewpoint-set level (Eq. 6-9): R_viewpoint = (S_visibility + S_overlap + S_conn) / 3
   S_visibility = sum(A) / (|V| |P|)                                                        (Eq. 7)
   r_ij = |common visible points| / min(n_i, n_j);  f = clip((r - r_min) / (r_max - r_min), 0, 1)
@@ -54,6 +64,9 @@ def smith_w3(alpha):
     return 1.0 - 1.0 / (1.0 + np.exp(-SMITH_K3 * (np.asarray(alpha, dtype=float) - SMITH_ALPHA3)))
 
 
+POINT_SCORES = ("per_view", "literal")
+
+
 @dataclass(frozen=True)
 class HeuristicParams:
     """Constants of Eq. 1-9 (distances in metres).
@@ -67,6 +80,9 @@ class HeuristicParams:
         tau_edge: a pair is a graph edge when its overlap score exceeds this.
         eps: the epsilon of Eq. 4.
         coverage_closeness_weight: model-coverage point score weight of the distance term.
+        point_score: ``per_view`` (default, see the module docstring) or ``literal`` (Eq. 1-5).
+        frontal_full_deg: per-view frontality is 1 up to this angle off the normal ...
+        frontal_cone_deg: ... and falls (linear in cos) to 0 at this angle (``per_view`` only).
     """
 
     k_count: int = 3
@@ -79,8 +95,18 @@ class HeuristicParams:
     tau_edge: float = 0.25
     eps: float = 1e-9
     coverage_closeness_weight: float = 0.1
+    point_score: str = "per_view"
+    frontal_full_deg: float = 30.0
+    frontal_cone_deg: float = 60.0
 
     def __post_init__(self) -> None:
+        if self.point_score not in POINT_SCORES:
+            raise PlanningError(f"point_score must be one of {POINT_SCORES}, got {self.point_score!r}")
+        if not 0.0 <= float(self.frontal_full_deg) < float(self.frontal_cone_deg) <= 90.0:
+            raise PlanningError(
+                "need 0 <= frontal_full_deg < frontal_cone_deg <= 90, got "
+                f"{self.frontal_full_deg}, {self.frontal_cone_deg}"
+            )
         if int(self.k_count) < 1:
             raise PlanningError(f"k_count must be >= 1, got {self.k_count}")
         if not (0.0 < float(self.target_lo_m) <= float(self.target_hi_m)):
@@ -113,6 +139,29 @@ def distance_score(distance, target_lo_m: float, target_hi_m: float, d_margin_m:
     return np.clip(1.0 - outside / d_margin_m, 0.0, 1.0).astype(np.float32)
 
 
+def frontality_score(cos_incidence, frontal_full_deg: float, frontal_cone_deg: float) -> np.ndarray:
+    """Per-observation frontality F: 1 up to ``frontal_full_deg`` off the normal, linear in the
+    cosine down to 0 at ``frontal_cone_deg`` and beyond (float32, like the geometry)."""
+    lo, hi = math.cos(math.radians(frontal_cone_deg)), math.cos(math.radians(frontal_full_deg))
+    c = np.asarray(cos_incidence, dtype=np.float32)
+    return np.clip((c - np.float32(lo)) / np.float32(hi - lo), 0.0, 1.0).astype(np.float32)
+
+
+def view_quality(visible, distance, cos_incidence, params: HeuristicParams) -> np.ndarray:
+    """q_vp (V, P) = F(theta) * D(d) of every visible observation, 0 where not visible (float32)."""
+    front = frontality_score(cos_incidence, params.frontal_full_deg, params.frontal_cone_deg)
+    dscore = distance_score(distance, params.target_lo_m, params.target_hi_m, params.d_margin_m)
+    return np.where(np.asarray(visible, bool), front * dscore, 0.0).astype(np.float32)
+
+
+def top_k_mean(values: np.ndarray, k: int) -> np.ndarray:
+    """Mean of the k largest values along axis 0 of (V, P), missing values counting 0 (P,)."""
+    v = np.asarray(values, dtype=np.float64)
+    if len(v) > k:
+        v = -np.partition(-v, k - 1, axis=0)[:k]
+    return v.sum(axis=0) / float(k)
+
+
 def angular_spread(direction: np.ndarray, visible: np.ndarray, eps: float = 1e-9) -> np.ndarray:
     """sigma_alpha (P,) in radians of the viewing directions (V, P, 3) of the visible views (Eq. 4)."""
     vis = np.asarray(visible, bool)
@@ -132,7 +181,9 @@ def point_scores(
     cos_incidence: np.ndarray,
     params: HeuristicParams,
 ) -> dict[str, np.ndarray]:
-    """Eq. 1-5 per point: ``front``, ``distance``, ``parallax``, ``count``, ``R_point`` (each (P,))."""
+    """Point scores (each (P,)): ``front``, ``distance``, ``parallax``, ``count``, ``sigma``,
+    ``R_point``; with ``point_score: per_view`` also ``quality`` (S_quality), and ``count`` and
+    ``parallax`` then use the good views (q_vp > 0) only."""
     vis = np.asarray(visible, bool)
     n_pts = vis.shape[1]
     if vis.shape[0] == 0:
@@ -140,10 +191,30 @@ def point_scores(
         return {
             "front": zero,
             "distance": zero,
+            "quality": zero,
             "parallax": smith_w1(zero) * smith_w3(zero),
             "count": zero,
             "sigma": zero,
             "R_point": zero,
+        }
+    if params.point_score == "per_view":
+        quality = view_quality(vis, distance, cos_incidence, params)
+        good = quality > 0
+        sigma = angular_spread(direction, good, params.eps)
+        parallax = smith_w1(sigma) * smith_w3(sigma)
+        s_quality = top_k_mean(quality, int(params.k_count))
+        return {
+            "front": np.where(vis, np.maximum(cos_incidence, 0.0), 0.0).max(axis=0).astype(float),
+            "distance": np.where(
+                vis, distance_score(distance, params.target_lo_m, params.target_hi_m, params.d_margin_m), 0.0
+            )
+            .max(axis=0)
+            .astype(float),
+            "quality": s_quality,
+            "parallax": parallax,
+            "count": np.minimum(1.0, good.sum(axis=0) / float(params.k_count)),
+            "sigma": sigma,
+            "R_point": s_quality * parallax,
         }
     front = np.where(vis, np.maximum(cos_incidence, 0.0), 0.0).max(axis=0)
     dscore = distance_score(distance, params.target_lo_m, params.target_hi_m, params.d_margin_m)
@@ -154,6 +225,7 @@ def point_scores(
     return {
         "front": front.astype(float),
         "distance": dist.astype(float),
+        "quality": (front * dist * count).astype(float),
         "parallax": parallax,
         "count": count,
         "sigma": sigma,

@@ -12,7 +12,8 @@ m new rows; many alternative proposals at once, as a CMA-ES population) is score
 
 The numbers equal ``planner.heuristics.global_score`` (float32 geometry, float64 sums).
 
-Two point-score modes: ``detail`` (Eq. 1-5) and ``coverage`` (``coverage_point_scores``). Rows may
+Two point-score modes: ``detail`` (``point_scores``: Eq. 1-5 as printed, or the per-view form, by
+``HeuristicParams.point_score``) and ``coverage`` (``coverage_point_scores``). Rows may
 be flagged not to count for the point scores (the detail viewpoints during the coverage pass):
 they still count for the viewpoint-set terms.
 """
@@ -25,7 +26,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from planner.heuristics import HeuristicParams, distance_score, smith_w1, smith_w3
+from planner.heuristics import HeuristicParams, distance_score, smith_w1, smith_w3, view_quality
 from planner.visibility import Observations
 
 
@@ -58,6 +59,7 @@ class ObjectiveState:
             raise ValueError(f"mode must be 'detail' or 'coverage', got {mode!r}")
         self.params = params
         self.mode = mode
+        self.per_view = mode == "detail" and params.point_score == "per_view"
         self.n_points = int(n_points)
         self._n = 0
         self._allocate(16)
@@ -77,17 +79,19 @@ class ObjectiveState:
         cos = np.zeros((capacity, n_pt), np.float32)
         front = np.zeros((capacity, n_pt), np.float32)
         dsc = np.zeros((capacity, n_pt), np.float32)
+        quality = np.zeros((capacity, n_pt), np.float32)
         prow = np.zeros(capacity, bool)
         common = np.zeros((capacity, capacity), np.int64)
         if old is not None and n:
-            for new, cur in zip((vis, dist, direc, cos, front, dsc, prow), self._row_arrays(), strict=True):
+            arrays = (vis, dist, direc, cos, front, dsc, quality, prow)
+            for new, cur in zip(arrays, self._row_arrays(), strict=True):
                 new[:n] = cur[:n]
             common[:n, :n] = self._common[:n, :n]
         self._vis, self._dist, self._dir, self._cos = vis, dist, direc, cos
-        self._front, self._dsc, self._prow, self._common = front, dsc, prow, common
+        self._front, self._dsc, self._q, self._prow, self._common = front, dsc, quality, prow, common
 
     def _row_arrays(self) -> tuple:
-        return self._vis, self._dist, self._dir, self._cos, self._front, self._dsc, self._prow
+        return self._vis, self._dist, self._dir, self._cos, self._front, self._dsc, self._q, self._prow
 
     def _write_rows(self, slots: np.ndarray, obs: Observations, point_rows: np.ndarray) -> None:
         self._vis[slots] = obs.visible
@@ -95,6 +99,8 @@ class ObjectiveState:
         self._dir[slots] = obs.direction
         self._cos[slots] = obs.cos_incidence
         self._front[slots], self._dsc[slots] = self._row_scores(obs)
+        if self.per_view:
+            self._q[slots] = view_quality(obs.visible, obs.distance, obs.cos_incidence, self.params)
         self._prow[slots] = point_rows
 
     @property
@@ -175,6 +181,26 @@ class ObjectiveState:
         usum = np.stack([np.bincount(ci, u[:, k], minlength=len(cols)) for k in range(3)], axis=1)
         return count, dmax, fmax, usum, ci, u
 
+    def _per_view_terms(self, cols: np.ndarray, rows_mask: np.ndarray):
+        """Per-view aggregates over the rows in ``rows_mask`` (point rows only) for columns ``cols``:
+        good-view count (T,), the k_count best qualities (T, k_count, zero-padded), the sum of the
+        good views' unit directions (T, 3), and the good pairs' column index and direction."""
+        sel = np.flatnonzero(rows_mask & self.point_rows)
+        k = int(self.params.k_count)
+        q = self._q[np.ix_(sel, cols)]
+        good = q > 0
+        top = _topk_values(q.T, k)
+        top = np.pad(top, ((0, 0), (0, k - top.shape[1])))
+        ri, ci = np.nonzero(good)
+        u = self.obs.direction[sel[ri], cols[ci]].astype(np.float64)
+        usum = np.stack([np.bincount(ci, u[:, j], minlength=len(cols)) for j in range(3)], axis=1)
+        return good.sum(axis=0), top, usum, ci, u
+
+    def _per_view_combine(self, count, top_sum, sq_sum):
+        p = self.params
+        sigma = np.sqrt(sq_sum / (count + p.eps))
+        return (top_sum / float(p.k_count)) * smith_w1(sigma) * smith_w3(sigma)
+
     def _combine(self, count, dmax, fmax, sq_sum):
         p = self.params
         cnt = np.minimum(1.0, count / float(p.k_count))
@@ -187,6 +213,13 @@ class ObjectiveState:
     def _recompute_points(self, cols: np.ndarray) -> None:
         cols = np.asarray(cols, dtype=np.intp)
         if len(cols) == 0:
+            return
+        if self.per_view:
+            count, top, usum, ci, u = self._per_view_terms(cols, np.ones(self.n_viewpoints, bool))
+            self.count[cols] = count
+            u_bar = usum / np.maximum(np.linalg.norm(usum, axis=1, keepdims=True), 1e-300)
+            sq = np.bincount(ci, np.arccos(np.clip(_dot3(u, u_bar[ci]), -1.0, 1.0)) ** 2, minlength=len(cols))
+            self.point_score[cols] = self._per_view_combine(count, top.sum(axis=1, dtype=np.float64), sq)
             return
         count, dmax, fmax, usum, ci, u = self._point_terms(cols, np.ones(self.n_viewpoints, bool))
         self.count[cols] = count
@@ -369,6 +402,8 @@ class ObjectiveState:
 
     def _touched_point_scores(self, cols, keep_mask, new: Observations, lam, m, npr) -> np.ndarray:
         """New point scores (L, T) of the touched columns under each alternative."""
+        if self.per_view:
+            return self._touched_per_view(cols, keep_mask, new, lam, m, npr)
         t = len(cols)
         count, dmax, fmax, usum, ci, u = self._point_terms(cols, keep_mask)
         if m and npr.any():
@@ -409,6 +444,36 @@ class ObjectiveState:
             dn = _dot3(ndir, u_bar[:, None])
             sq += np.where(nvis, np.arccos(np.clip(dn, -1.0, 1.0)) ** 2, 0.0).sum(axis=1)
         return self._combine(count_l, dmax_l.astype(float), fmax_l.astype(float), sq)
+
+    def _touched_per_view(self, cols, keep_mask, new: Observations, lam, m, npr) -> np.ndarray:
+        """``_touched_point_scores`` for the per-view point score."""
+        t, k = len(cols), int(self.params.k_count)
+        count, top, usum, ci, u = self._per_view_terms(cols, keep_mask)
+        top_l = np.broadcast_to(top.T, (lam, k, t))
+        if m and npr.any():
+            rows = np.flatnonzero(np.tile(npr, lam))  # rows of ``new`` counting for points
+            ix = np.ix_(rows, cols)
+            q_n = view_quality(new.visible[ix], new.distance[ix], new.cos_incidence[ix], self.params)
+            q_n = q_n.reshape(lam, -1, t)
+            good_n = q_n > 0
+            count_l = count[None] + good_n.sum(axis=1)
+            top_l = _topk_values(np.swapaxes(np.concatenate([top_l, q_n], axis=1), 1, 2), k)
+            top_sum = top_l.sum(axis=2, dtype=np.float64)
+            ndir = new.direction[ix].reshape(lam, -1, t, 3) * good_n[..., None]
+            usum_l = usum[None] + ndir.sum(axis=1, dtype=np.float64)
+        else:
+            good_n = None
+            count_l = np.broadcast_to(count, (lam, t))
+            top_sum = top_l.sum(axis=1, dtype=np.float64)
+            usum_l = np.broadcast_to(usum, (lam, t, 3))
+        u_bar = usum_l / np.maximum(np.linalg.norm(usum_l, axis=2, keepdims=True), 1e-300)
+        ang2 = np.arccos(np.clip(_dot3(u_bar[:, ci], u[None]), -1.0, 1.0)) ** 2
+        flat = (np.arange(lam)[:, None] * t + ci[None]).ravel()
+        sq = np.bincount(flat, ang2.ravel(), minlength=lam * t).reshape(lam, t)
+        if good_n is not None:
+            dn = _dot3(ndir, u_bar[:, None])
+            sq += np.where(good_n, np.arccos(np.clip(dn, -1.0, 1.0)) ** 2, 0.0).sum(axis=1)
+        return self._per_view_combine(count_l, top_sum, sq)
 
     def _largest_component(self, f_kk, f_nk, f_nn) -> np.ndarray:
         """Size (L,) of the largest connected component after each alternative."""

@@ -55,6 +55,9 @@ DEFAULTS: dict = {
         "top_k": 4,
         "tau_edge": 0.25,
         "eps": 1e-9,
+        "point_score": "per_view",
+        "frontal_full_deg": 30.0,
+        "frontal_cone_deg": 60.0,
     },
     "visibility": {
         "min_distance_m": 1.0,
@@ -303,6 +306,9 @@ def _plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed:
         top_k=int(h["top_k"]),
         tau_edge=float(h["tau_edge"]),
         eps=float(h["eps"]),
+        point_score=str(h["point_score"]),
+        frontal_full_deg=float(h["frontal_full_deg"]),
+        frontal_cone_deg=float(h["frontal_cone_deg"]),
     )
     d_c = _positive(cfg, "coverage", "distance_factor") * d_t
     ctol = float(cv["distance_tolerance"])

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 
+from planner.base import PlanningError
 from planner.heuristics import (
     HeuristicParams,
     angular_spread,
@@ -19,13 +21,22 @@ from planner.heuristics import (
     point_scores,
     smith_w1,
     smith_w3,
+    view_quality,
     viewpoint_set_scores,
 )
 from planner.objective import ObjectiveState
 from planner.visibility import Observations
 
-PARAMS = HeuristicParams(
-    k_count=3, target_lo_m=8.0, target_hi_m=12.0, d_margin_m=4.0, r_min=0.1, r_max=0.5, top_k=2, tau_edge=0.25
+PARAMS = HeuristicParams(  # Eq. 1-5 as printed: the hand-computed values below
+    k_count=3,
+    target_lo_m=8.0,
+    target_hi_m=12.0,
+    d_margin_m=4.0,
+    r_min=0.1,
+    r_max=0.5,
+    top_k=2,
+    tau_edge=0.25,
+    point_score="literal",
 )
 
 
@@ -149,10 +160,12 @@ def _reference(obs: Observations, params, mode="detail", point_rows=None):
     return {"R": pts.sum() + obs.visible.shape[1] * vset["R_viewpoint"], **vset}
 
 
+@pytest.mark.parametrize("point_score", ["literal", "per_view"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_incremental_objective_matches_reference(seed):
+def test_incremental_objective_matches_reference(seed, point_score):
     rng = np.random.default_rng(seed)
     n_pt = 60
+    PARAMS = dataclasses.replace(globals()["PARAMS"], point_score=point_score)
     base = _random_obs(rng, 14, n_pt)
     state = ObjectiveState(PARAMS, n_pt)
     state.reset(base)
@@ -190,7 +203,11 @@ def test_incremental_objective_matches_reference(seed):
     grown = Observations.concatenate([kept, extra], n_pt)
     assert prop.R[0] == pytest.approx(state.R, rel=1e-12)
     assert state.R == pytest.approx(_reference(grown, PARAMS)["R"], rel=1e-7)
-    np.testing.assert_array_equal(state.count, grown.visible.sum(axis=0))
+    if point_score == "literal":
+        np.testing.assert_array_equal(state.count, grown.visible.sum(axis=0))
+    else:
+        good = view_quality(grown.visible, grown.distance, grown.cos_incidence, PARAMS) > 0
+        np.testing.assert_array_equal(state.count, good.sum(axis=0))
 
 
 def test_incremental_coverage_objective_with_rows_not_counting_for_points():
@@ -226,3 +243,56 @@ def test_single_removal_shortcut_matches_general_evaluation(n_vp, top_k):
         expected = _reference(kept, params)["R"]
         assert state.evaluate_removal(i) == pytest.approx(expected, rel=1e-7)
         assert state.evaluate_removal(i) == pytest.approx(state.evaluate([i]).R[0], rel=1e-12)
+
+
+def _wall_point(view_angles_deg, distances, params):
+    """R_point of a wall point (normal +x) seen from horizontal views at ``view_angles_deg`` off
+    the normal and ``distances`` (m)."""
+    a = np.radians(np.asarray(view_angles_deg, dtype=float))
+    obs = _obs_for_point([1, 0, 0], np.stack([np.cos(a), np.sin(a), 0 * a], axis=1), distances)
+    return point_scores(obs.visible, obs.distance, obs.direction, obs.cos_incidence, params)
+
+
+def test_per_view_score_needs_several_close_frontal_views():
+    per_view = dataclasses.replace(PARAMS, point_score="per_view")
+    # One close frontal view, one far (15 m: distance score 0.25) and one grazing (70 deg) view.
+    weak_views, weak_dist = [0.0, 20.0, 70.0], [10.0, 15.0, 10.0]
+    # Three close views 0 and +-20 deg off the normal.
+    good_views, good_dist = [0.0, 20.0, -20.0], [10.0, 10.0, 10.0]
+
+    literal_weak = _wall_point(weak_views, weak_dist, PARAMS)
+    sigma = literal_weak["sigma"][0]
+    # The literal form takes the best frontality (1) and distance (1) from any view, counts all 3.
+    assert literal_weak["R_point"][0] == pytest.approx(smith_w1(sigma) * smith_w3(sigma))
+    assert literal_weak["R_point"][0] > 0.85  # 0.898: only the parallax of the 0/20/70 deg spread costs
+
+    weak = _wall_point(weak_views, weak_dist, per_view)
+    # q = [1, F(20 deg) * 0.25 = 0.25, F(70 deg) = 0]: S_quality = 1.25 / 3; parallax over the
+    # two good views (0 and 20 deg apart: sigma = 10 deg).
+    assert weak["quality"][0] == pytest.approx(1.25 / 3.0)
+    assert weak["sigma"][0] == pytest.approx(math.radians(10.0), abs=1e-6)
+    w = smith_w1(math.radians(10.0)) * smith_w3(math.radians(10.0))
+    assert weak["R_point"][0] == pytest.approx(1.25 / 3.0 * w, rel=1e-6)
+
+    good = _wall_point(good_views, good_dist, per_view)
+    sigma_good = math.sqrt((2 * math.radians(20.0) ** 2) / 3)  # mean direction along the normal
+    assert good["quality"][0] == pytest.approx(1.0)
+    assert good["sigma"][0] == pytest.approx(sigma_good, abs=1e-6)
+    assert good["R_point"][0] == pytest.approx(smith_w1(sigma_good) * smith_w3(sigma_good), rel=1e-6)
+    assert good["R_point"][0] > 0.9 > 0.4 > weak["R_point"][0]
+
+
+def test_frontality_is_full_to_30_deg_and_gone_at_60():
+    params = dataclasses.replace(PARAMS, point_score="per_view")
+    scores = _wall_point([0.0, 30.0, 45.0, 60.0, 75.0], [10.0] * 5, params)
+    cos45 = math.cos(math.radians(45.0))
+    lo, hi = math.cos(math.radians(60.0)), math.cos(math.radians(30.0))
+    a = np.radians([0.0, 30.0, 45.0, 60.0, 75.0])
+    obs = _obs_for_point([1, 0, 0], np.stack([np.cos(a), np.sin(a), 0 * a], axis=1), [10.0] * 5)
+    q = view_quality(obs.visible, obs.distance, obs.cos_incidence, params)[:, 0]
+    np.testing.assert_allclose(q, [1.0, 1.0, (cos45 - lo) / (hi - lo), 0.0, 0.0], atol=1e-6)
+    assert scores["quality"][0] == pytest.approx((2.0 + (cos45 - lo) / (hi - lo)) / 3.0, rel=1e-6)
+    with pytest.raises(PlanningError, match="frontal_full_deg < frontal_cone_deg"):
+        dataclasses.replace(params, frontal_full_deg=60.0, frontal_cone_deg=30.0)
+    with pytest.raises(PlanningError, match="point_score"):
+        dataclasses.replace(params, point_score="best")

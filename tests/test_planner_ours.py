@@ -14,7 +14,7 @@ from planner.base import PlanningError
 from planner.candidates import CandidateSettings, FlightLimits, detail_group
 from planner.cmaes_refine import CmaSettings, refine_clusters, spatial_clusters
 from planner.culling import cull
-from planner.heuristics import HeuristicParams, global_score
+from planner.heuristics import HeuristicParams, global_score, view_quality
 from planner.objective import ObjectiveState
 from planner.ours import DEFAULTS, _add_viewpoints, plan
 from planner.sampling import sample_surface
@@ -118,7 +118,9 @@ def test_spatial_clusters_cover_everything_in_compact_groups():
 def test_addition_gives_every_non_excluded_point_three_views(scene, added):
     _, model = scene
     state, vps, excluded, stats = added
-    counts = model.visibility(vps).sum(axis=0)  # independent of the incremental state
+    # Good views (close and frontal: per-view quality > 0), counted independently of the state.
+    obs = model.observe(vps)
+    counts = (view_quality(obs.visible, obs.distance, obs.cos_incidence, PARAMS) > 0).sum(axis=0)
     np.testing.assert_array_equal(counts, state.count)
     assert (counts[~excluded] >= 3).all()
     assert excluded.sum() < model.n_points // 4  # the points under the box are excluded, few others
