@@ -6,7 +6,11 @@ frontal one. A candidate sits at ``distance`` from p along its direction and is 
 pitch is clipped to the gimbal range. Candidates that break the altitude or clearance limits or do
 not see p are dropped. The group is the valid frontal candidate closest to n, then side candidates
 chosen greedily to be angularly spread apart (each maximises its smallest angle to the views
-already chosen). No valid candidate: no group (the caller excludes the point).
+already chosen). A point whose candidates are all invalid at ``distance`` (a confined face: a
+courtyard wall, a buttress bay) gets fallbacks in order: the axis tilted up by each of
+``fallback_tilt_deg`` (looking down onto the face over what blocks it), then each of
+``fallback_distance_factors`` x ``distance`` with and without the tilt. No valid candidate after
+them: no group (the caller excludes the point).
 """
 
 from __future__ import annotations
@@ -29,12 +33,15 @@ class FlightLimits:
         pitch_min_deg, pitch_max_deg: gimbal pitch range in degrees (-90 is nadir).
         min_altitude_m: lowest allowed camera height (z) in metres.
         min_clearance_m: smallest allowed distance in metres from the camera to the proxy.
+        reject_enclosed: a camera inside a closed part of the proxy (``VisibilityModel.enclosed``)
+            violates the limits by ``min_clearance_m`` + 1 m.
     """
 
     pitch_min_deg: float = -90.0
     pitch_max_deg: float = 30.0
     min_altitude_m: float = 2.0
     min_clearance_m: float = 3.0
+    reject_enclosed: bool = True
 
     def __post_init__(self) -> None:
         lo, hi = float(self.pitch_min_deg), float(self.pitch_max_deg)
@@ -53,6 +60,8 @@ class FlightLimits:
         v = np.maximum(self.pitch_min_deg - vps[:, 4], 0.0) + np.maximum(vps[:, 4] - self.pitch_max_deg, 0.0)
         v += np.maximum(self.min_altitude_m - vps[:, 2], 0.0)
         v += np.maximum(self.min_clearance_m - model.clearance(vps[:, :3]), 0.0)
+        if self.reject_enclosed:
+            v += np.where(model.enclosed(vps[:, :3]), self.min_clearance_m + 1.0, 0.0)
         return v
 
     def feasible(self, viewpoints: np.ndarray, model: VisibilityModel, tol: float = 1e-6) -> np.ndarray:
@@ -139,23 +148,50 @@ class CandidateSettings:
     frontal_jitter_deg: float = 10.0
     n_side: int = 8
     side_angle_deg: float = 25.0
+    fallback_distance_factors: tuple[float, ...] = (0.7, 0.5)
+    fallback_tilt_deg: tuple[float, ...] = (30.0,)
+
+    def attempts(self) -> list[tuple[float, float]]:
+        """(distance in metres, tilt in degrees) in the order they are tried."""
+        tilts = [0.0, *map(float, self.fallback_tilt_deg)]
+        factors = [1.0, *map(float, self.fallback_distance_factors)]
+        return [(self.distance_m * f, t) for f in factors for t in tilts]
+
+
+def tilted_up(normal: np.ndarray, tilt_deg: float) -> np.ndarray:
+    """``normal`` turned towards +z by ``tilt_deg`` (unchanged when it points nearly straight up or
+    down, where tilting picks no better side)."""
+    n = np.asarray(normal, dtype=float) / np.linalg.norm(normal)
+    up = np.array([0.0, 0.0, 1.0]) - n[2] * n
+    norm = np.linalg.norm(up)
+    if tilt_deg == 0.0 or norm < 0.3:  # |n_z| > 0.95
+        return n
+    t = math.radians(tilt_deg)
+    return math.cos(t) * n + math.sin(t) * up / norm
 
 
 def valid_candidates(
     point_index: int, model: VisibilityModel, limits: FlightLimits, settings: CandidateSettings
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The valid candidates around one point: viewpoints (C', 5), directions (C', 3), frontal (C',)
-    and parent frontal index (C',)."""
+    and parent frontal index (C',), from the first of ``settings.attempts()`` that has any."""
     p = model.points[point_index]
     n = model.normals[point_index]
-    dirs, frontal, parent = candidate_directions(
-        n, settings.n_frontal, settings.frontal_jitter_deg, settings.n_side, settings.side_angle_deg
-    )
-    vps = aimed_viewpoints(p[None] + settings.distance_m * dirs, p, limits)
-    ok = limits.feasible(vps, model)
-    if ok.any():
-        rows = np.flatnonzero(ok)
-        ok[rows] = model.sees(vps[rows], point_index)
+    for distance, tilt in settings.attempts():
+        dirs, frontal, parent = candidate_directions(
+            tilted_up(n, tilt),
+            settings.n_frontal,
+            settings.frontal_jitter_deg,
+            settings.n_side,
+            settings.side_angle_deg,
+        )
+        vps = aimed_viewpoints(p[None] + distance * dirs, p, limits)
+        ok = limits.feasible(vps, model)
+        if ok.any():
+            rows = np.flatnonzero(ok)
+            ok[rows] = model.sees(vps[rows], point_index)
+        if ok.any():
+            return vps[ok], dirs[ok], frontal[ok], parent[ok]
     return vps[ok], dirs[ok], frontal[ok], parent[ok]
 
 

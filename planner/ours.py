@@ -65,13 +65,21 @@ DEFAULTS: dict = {
         "ray_offset_m": 0.02,
         "image_margin_px": 0.0,
     },
-    "limits": {"pitch_min_deg": -90.0, "pitch_max_deg": 30.0, "min_altitude_m": 2.0, "min_clearance_m": 3.0},
+    "limits": {
+        "pitch_min_deg": -90.0,
+        "pitch_max_deg": 30.0,
+        "min_altitude_m": 2.0,
+        "min_clearance_m": 3.0,
+        "reject_enclosed": True,
+    },
     "candidates": {
         "group_size": 3,
         "n_frontal": 5,
         "frontal_jitter_deg": 10.0,
         "n_side": 8,
         "side_angle_deg": 25.0,
+        "fallback_distance_factors": [0.7, 0.5],
+        "fallback_tilt_deg": [30.0],
     },
     "addition": {"repair_threshold": 0.5, "repair_max_groups": 100},
     "detail_rounds": 4,
@@ -355,6 +363,16 @@ def _plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed:
     state = ObjectiveState(det_params, n_points, mode="detail")
     rec.record("sample", None, state, [], sample_time_s=time.perf_counter() - t0)
 
+    fallbacks = tuple(float(f) for f in c["fallback_distance_factors"])
+    tilts = tuple(float(t) for t in c["fallback_tilt_deg"])
+    if not all(0.0 < f < 1.0 for f in fallbacks):
+        raise PlanningError(
+            f"planner ours: candidates.fallback_distance_factors must lie in (0, 1), got {list(fallbacks)}"
+        )
+    if not all(0.0 < t < 90.0 for t in tilts):
+        raise PlanningError(
+            f"planner ours: candidates.fallback_tilt_deg must lie in (0, 90), got {list(tilts)}"
+        )
     det_settings = CandidateSettings(
         distance_m=d_t,
         group_size=int(c["group_size"]),
@@ -362,6 +380,8 @@ def _plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed:
         frontal_jitter_deg=float(c["frontal_jitter_deg"]),
         n_side=int(c["n_side"]),
         side_angle_deg=float(c["side_angle_deg"]),
+        fallback_distance_factors=fallbacks,
+        fallback_tilt_deg=tilts,
     )
     cov_settings = CandidateSettings(
         distance_m=d_c,
@@ -370,6 +390,8 @@ def _plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed:
         frontal_jitter_deg=float(c["frontal_jitter_deg"]),
         n_side=int(c["n_side"]),
         side_angle_deg=float(c["side_angle_deg"]),
+        fallback_distance_factors=fallbacks,
+        fallback_tilt_deg=tilts,
     )
     for s in (det_settings, cov_settings):
         if s.group_size < 1 or s.n_frontal < 1 or s.n_side < 0:

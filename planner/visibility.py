@@ -112,6 +112,14 @@ class Observations:
         )
 
 
+# enclosed(): share of rays that must leave an interior (a camera in a doorway still sees out).
+ENCLOSED_BACK_FRACTION = 0.75
+_GRID = np.array(
+    [(x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1) if (x, y, z) != (0, 0, 0)]
+)
+_GRID_DIRECTIONS = (_GRID / np.linalg.norm(_GRID, axis=1, keepdims=True)).astype(np.float32)
+
+
 class VisibilityModel:
     """Visibility of fixed surface samples of a proxy mesh from arbitrary viewpoints.
 
@@ -296,6 +304,30 @@ class VisibilityModel:
         if len(q) == 0:
             return np.zeros((0, 3))
         return self._scene.compute_closest_points(o3d.core.Tensor(q))["points"].numpy().astype(float)
+
+    def enclosed(
+        self, positions: np.ndarray, min_back_fraction: float = ENCLOSED_BACK_FRACTION
+    ) -> np.ndarray:
+        """(N,) bool: positions (N, 3) inside a closed part of the proxy.
+
+        From each position rays leave along the 26 directions of a 3 x 3 x 3 grid; a position is
+        enclosed when at least ``min_back_fraction`` of them first hit the proxy from behind (the
+        ray runs along the hit face's outward normal: it left an interior). A camera under an eave
+        or in a courtyard sees open sky or outer faces along most rays; one inside a hall does not.
+        """
+        q = np.asarray(positions, dtype=np.float32).reshape(-1, 3)
+        if len(q) == 0:
+            return np.zeros(0, bool)
+        dirs = _GRID_DIRECTIONS
+        rays = np.concatenate([np.repeat(q, len(dirs), axis=0), np.tile(dirs, (len(q), 1))], axis=1).astype(
+            np.float32
+        )
+        self.rays_cast += len(rays)
+        hits = self._scene.cast_rays(o3d.core.Tensor(rays))
+        hit = np.isfinite(hits["t_hit"].numpy())
+        normals = hits["primitive_normals"].numpy()
+        back = hit & (np.einsum("ij,ij->i", normals, rays[:, 3:]) > 0)
+        return back.reshape(len(q), len(dirs)).mean(axis=1) >= float(min_back_fraction)
 
     def clearance(self, positions: np.ndarray) -> np.ndarray:
         """(N,) distance in metres from each position (N, 3) to the nearest proxy surface."""

@@ -125,3 +125,21 @@ def test_bad_limits_and_empty_proxy_raise():
         VisibilityLimits(1.0, 5.0, 95.0)
     with pytest.raises(PlanningError, match="empty"):
         VisibilityModel(trimesh.Trimesh(), np.zeros((1, 3)), np.ones((1, 3)), INTRINSICS, LIMITS)
+
+
+def test_positions_inside_a_closed_hall_are_enclosed_and_outside_ones_not():
+    hall = box_building(size=(40.0, 24.0, 15.0), ground_half=60.0)
+    eave = trimesh.creation.box(extents=(4.0, 24.0, 0.5))  # a roof overhang on the +x side
+    eave.apply_translation((22.0, 0.0, 12.0))
+    proxy = trimesh.util.concatenate([hall, eave])
+    model = VisibilityModel(proxy, np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), INTRINSICS, LIMITS)
+    positions = np.array(
+        [
+            [0.0, 0.0, 7.0],  # the middle of the hall
+            [15.0, 8.0, 3.0],  # a corner of the hall, near the floor
+            [0.0, 0.0, 30.0],  # above the roof
+            [25.0, 0.0, 6.0],  # under the eave, beside the wall
+            [-30.0, 0.0, 2.0],  # in front of a wall
+        ]
+    )
+    np.testing.assert_array_equal(model.enclosed(positions), [True, True, False, False, False])
