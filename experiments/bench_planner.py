@@ -25,9 +25,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from planner.cmaes_refine import spatial_clusters  # noqa: E402
-from planner.heuristics import HeuristicParams  # noqa: E402
 from planner.objective import ObjectiveState  # noqa: E402
-from planner.ours import plan, resolve_params  # noqa: E402
+from planner.ours import detail_params, plan, resolve_params  # noqa: E402
 from planner.sampling import sample_surface  # noqa: E402
 from planner.visibility import VisibilityLimits, VisibilityModel  # noqa: E402
 from scene.camera import Intrinsics  # noqa: E402
@@ -64,20 +63,9 @@ def rescore_ratio(
 ):
     """(full evaluation s, one-cluster re-score s, ratio) in wall and CPU time on ``viewpoints``."""
     cfg = resolve_params(params)
-    h = cfg["heuristics"]
     d_t = intrinsics.distance_for_gsd(cfg["target_gsd_m"])
-    tol, margin = h["distance_tolerance"], h["d_margin_factor"] * d_t
-    hp = HeuristicParams(
-        k_count=h["k_count"],
-        target_lo_m=d_t * (1 - tol),
-        target_hi_m=d_t * (1 + tol),
-        d_margin_m=margin,
-        r_min=h["r_min"],
-        r_max=h["r_max"],
-        top_k=h["top_k"],
-        tau_edge=h["tau_edge"],
-        eps=h["eps"],
-    )
+    hp = detail_params(cfg["heuristics"], d_t)
+    margin = hp.d_margin_m
     points, normals = sample_surface(proxy, cfg["n_points"], seed)
     vis = cfg["visibility"]
     model = VisibilityModel(
@@ -89,7 +77,7 @@ def rescore_ratio(
         vis["ray_offset_m"],
         vis["image_margin_px"],
     )
-    state = ObjectiveState(hp, len(points))
+    state = ObjectiveState(hp, len(points), points=points)
     clusters = spatial_clusters(viewpoints[:, :3], cfg["cmaes"]["cluster_size"])
     rng = np.random.default_rng(seed)
     full_w = full_c = inc_w = inc_c = 0.0

@@ -29,6 +29,13 @@ Viewpoint-set level (Eq. 6-9): R_viewpoint = (S_visibility + S_overlap + S_conn)
   r_ij = |common visible points| / min(n_i, n_j);  f = clip((r - r_min) / (r_max - r_min), 0, 1)
   S_overlap    = mean_i (1/k) sum of the top-k f(r_ij), j != i (fewer than k others: missing = 0)
   S_conn       = |largest connected component| / |V|, edges where f(r_ij) > tau_edge         (Eq. 9)
+  With ``matchable_overlap`` (default) f is multiplied by the pair's matchability g_ij: SIFT links
+  two views of the same points only when they see them from similar directions and scales. From
+  the point m_ij halfway between the centroids of the two views' visible points, g_ij = 1 when the
+  camera centres are at most ``match_angle_full_deg`` apart and their distances differ at most
+  ``match_scale_full`` x, falling linearly to 0 at ``match_angle_zero_deg`` and ``match_scale_zero``.
+  Eq. 8 as printed (g = 1) rates a near-horizontal wall view and a nadir view that share a roof
+  edge as well linked; SfM does not register such views.
 Global: R = sum_p R_point + |P| R_viewpoint                                               (Eq. 10)
 
 The model-coverage pass scores points with ``coverage_point_scores`` instead (see there).
@@ -83,6 +90,9 @@ class HeuristicParams:
         point_score: ``per_view`` (default, see the module docstring) or ``literal`` (Eq. 1-5).
         frontal_full_deg: per-view frontality is 1 up to this angle off the normal ...
         frontal_cone_deg: ... and falls (linear in cos) to 0 at this angle (``per_view`` only).
+        matchable_overlap: weight pair overlaps by their matchability g_ij (module docstring).
+        match_angle_full_deg, match_angle_zero_deg: g's ramp over the angle between the cameras.
+        match_scale_full, match_scale_zero: g's ramp over the ratio of their distances.
     """
 
     k_count: int = 3
@@ -98,8 +108,23 @@ class HeuristicParams:
     point_score: str = "per_view"
     frontal_full_deg: float = 30.0
     frontal_cone_deg: float = 60.0
+    matchable_overlap: bool = True
+    match_angle_full_deg: float = 30.0
+    match_angle_zero_deg: float = 45.0
+    match_scale_full: float = 1.5
+    match_scale_zero: float = 2.0
 
     def __post_init__(self) -> None:
+        if not 0.0 <= float(self.match_angle_full_deg) < float(self.match_angle_zero_deg) <= 180.0:
+            raise PlanningError(
+                "need 0 <= match_angle_full_deg < match_angle_zero_deg <= 180, got "
+                f"{self.match_angle_full_deg}, {self.match_angle_zero_deg}"
+            )
+        if not 1.0 <= float(self.match_scale_full) < float(self.match_scale_zero):
+            raise PlanningError(
+                "need 1 <= match_scale_full < match_scale_zero, got "
+                f"{self.match_scale_full}, {self.match_scale_zero}"
+            )
         if self.point_score not in POINT_SCORES:
             raise PlanningError(f"point_score must be one of {POINT_SCORES}, got {self.point_score!r}")
         if not 0.0 <= float(self.frontal_full_deg) < float(self.frontal_cone_deg) <= 90.0:
@@ -160,6 +185,34 @@ def top_k_mean(values: np.ndarray, k: int) -> np.ndarray:
     if len(v) > k:
         v = -np.partition(-v, k - 1, axis=0)[:k]
     return v.sum(axis=0) / float(k)
+
+
+def view_geometry(visible, distance, direction, points) -> tuple[np.ndarray, np.ndarray]:
+    """Camera centre and the centroid of the visible points (each (V, 3), metres) of every view,
+    from its observations of the samples ``points`` (P, 3); zeros for a view that sees none."""
+    vis = np.asarray(visible, bool)
+    n = np.maximum(vis.sum(axis=1), 1)[:, None]
+    pts = np.asarray(points, dtype=np.float64)
+    look = (vis.astype(np.float64) @ pts) / n
+    offset = np.asarray(direction, dtype=np.float64) * np.asarray(distance, dtype=np.float64)[..., None]
+    centre = look + np.einsum("vp,vpk->vk", vis, offset) / n
+    return centre, look
+
+
+def pair_matchability(centre_a, look_a, centre_b, look_b, params: HeuristicParams) -> np.ndarray:
+    """g_ij of views a and b (broadcasting over leading axes of the (..., 3) arrays): 1 when seen
+    from their common area the cameras are close in direction and scale, 0 when they are not."""
+    mid = 0.5 * (np.asarray(look_a) + np.asarray(look_b))
+    ra, rb = np.asarray(centre_a) - mid, np.asarray(centre_b) - mid
+    la, lb = np.linalg.norm(ra, axis=-1), np.linalg.norm(rb, axis=-1)
+    cos = np.einsum("...k,...k->...", ra, rb) / np.maximum(la * lb, 1e-12)
+    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    ratio = np.maximum(la, lb) / np.maximum(np.minimum(la, lb), 1e-12)
+    a_full, a_zero = float(params.match_angle_full_deg), float(params.match_angle_zero_deg)
+    s_full, s_zero = float(params.match_scale_full), float(params.match_scale_zero)
+    g_angle = np.clip((a_zero - angle) / (a_zero - a_full), 0.0, 1.0)
+    g_scale = np.clip((s_zero - ratio) / (s_zero - s_full), 0.0, 1.0)
+    return g_angle * g_scale
 
 
 def angular_spread(direction: np.ndarray, visible: np.ndarray, eps: float = 1e-9) -> np.ndarray:
@@ -294,13 +347,22 @@ def connectivity_score(pair_scores: np.ndarray, tau_edge: float) -> float:
     return float(np.bincount(labels).max() / n)
 
 
-def viewpoint_set_scores(visible: np.ndarray, params: HeuristicParams) -> dict[str, float]:
-    """Eq. 6-9: ``visibility``, ``overlap``, ``connectivity`` and ``R_viewpoint``."""
+def viewpoint_set_scores(
+    visible: np.ndarray, params: HeuristicParams, geometry: tuple[np.ndarray, np.ndarray] | None = None
+) -> dict[str, float]:
+    """Eq. 6-9: ``visibility``, ``overlap``, ``connectivity`` and ``R_viewpoint``; ``geometry``
+    (``view_geometry``) weights the pair scores by their matchability when
+    ``params.matchable_overlap``."""
     vis = np.asarray(visible, bool)
     n_vp, n_pt = vis.shape
     if n_vp == 0:
         return {"visibility": 0.0, "overlap": 0.0, "connectivity": 0.0, "R_viewpoint": 0.0}
     f = overlap_pair_scores(overlap_ratios(vis), params.r_min, params.r_max)
+    if params.matchable_overlap:
+        if geometry is None:
+            raise ValueError("matchable_overlap needs the views' geometry (view_geometry)")
+        centre, look = geometry
+        f = f * pair_matchability(centre[:, None], look[:, None], centre[None], look[None], params)
     s_vis = float(vis.sum() / (n_vp * n_pt))
     s_ovl = overlap_score(f, params.top_k)
     s_conn = connectivity_score(f, params.tau_edge)
@@ -318,10 +380,13 @@ def global_score(
     direction: np.ndarray,
     cos_incidence: np.ndarray,
     params: HeuristicParams,
+    points: np.ndarray | None = None,
 ) -> dict[str, float]:
-    """Eq. 10: R = sum_p R_point + |P| R_viewpoint, with its parts (``R_point_sum``, Eq. 6-9 terms)."""
+    """Eq. 10: R = sum_p R_point + |P| R_viewpoint, with its parts (``R_point_sum``, Eq. 6-9 terms).
+    ``points`` (P, 3): the samples, needed for the matchable overlap."""
     pts = point_scores(visible, distance, direction, cos_incidence, params)
-    vset = viewpoint_set_scores(visible, params)
+    geometry = view_geometry(visible, distance, direction, points) if points is not None else None
+    vset = viewpoint_set_scores(visible, params, geometry)
     n_pt = np.asarray(visible).shape[1]
     r_point_sum = float(pts["R_point"].sum())
     return {"R": r_point_sum + n_pt * vset["R_viewpoint"], "R_point_sum": r_point_sum, **vset}

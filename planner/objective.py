@@ -26,7 +26,15 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from planner.heuristics import HeuristicParams, distance_score, smith_w1, smith_w3, view_quality
+from planner.heuristics import (
+    HeuristicParams,
+    distance_score,
+    pair_matchability,
+    smith_w1,
+    smith_w3,
+    view_geometry,
+    view_quality,
+)
 from planner.visibility import Observations
 
 
@@ -52,11 +60,17 @@ class ObjectiveState:
         params: heuristic constants (the distance range is the one of the pass).
         n_points: P.
         mode: ``detail`` or ``coverage`` point scores.
+        points: (P, 3) the samples in metres; needed when ``params.matchable_overlap``.
     """
 
-    def __init__(self, params: HeuristicParams, n_points: int, mode: str = "detail") -> None:
+    def __init__(
+        self, params: HeuristicParams, n_points: int, mode: str = "detail", points: np.ndarray | None = None
+    ) -> None:
         if mode not in ("detail", "coverage"):
             raise ValueError(f"mode must be 'detail' or 'coverage', got {mode!r}")
+        if params.matchable_overlap and (points is None or len(points) != int(n_points)):
+            raise ValueError("matchable_overlap needs the (P, 3) sample points")
+        self.points = None if points is None else np.asarray(points, dtype=np.float64)
         self.params = params
         self.mode = mode
         self.per_view = mode == "detail" and params.point_score == "per_view"
@@ -80,18 +94,32 @@ class ObjectiveState:
         front = np.zeros((capacity, n_pt), np.float32)
         dsc = np.zeros((capacity, n_pt), np.float32)
         quality = np.zeros((capacity, n_pt), np.float32)
+        centre = np.zeros((capacity, 3))
+        look = np.zeros((capacity, 3))
         prow = np.zeros(capacity, bool)
         common = np.zeros((capacity, capacity), np.int64)
         if old is not None and n:
-            arrays = (vis, dist, direc, cos, front, dsc, quality, prow)
+            arrays = (vis, dist, direc, cos, front, dsc, quality, centre, look, prow)
             for new, cur in zip(arrays, self._row_arrays(), strict=True):
                 new[:n] = cur[:n]
             common[:n, :n] = self._common[:n, :n]
         self._vis, self._dist, self._dir, self._cos = vis, dist, direc, cos
         self._front, self._dsc, self._q, self._prow, self._common = front, dsc, quality, prow, common
+        self._centre, self._look = centre, look
 
     def _row_arrays(self) -> tuple:
-        return self._vis, self._dist, self._dir, self._cos, self._front, self._dsc, self._q, self._prow
+        return (
+            self._vis,
+            self._dist,
+            self._dir,
+            self._cos,
+            self._front,
+            self._dsc,
+            self._q,
+            self._centre,
+            self._look,
+            self._prow,
+        )
 
     def _write_rows(self, slots: np.ndarray, obs: Observations, point_rows: np.ndarray) -> None:
         self._vis[slots] = obs.visible
@@ -99,6 +127,8 @@ class ObjectiveState:
         self._dir[slots] = obs.direction
         self._cos[slots] = obs.cos_incidence
         self._front[slots], self._dsc[slots] = self._row_scores(obs)
+        if self.params.matchable_overlap:
+            self._centre[slots], self._look[slots] = self._geometry(obs)
         if self.per_view:
             self._q[slots] = view_quality(obs.visible, obs.distance, obs.cos_incidence, self.params)
         self._prow[slots] = point_rows
@@ -145,6 +175,17 @@ class ObjectiveState:
         """Current R and its parts (``R_point_sum``, ``visibility``, ``overlap``, ``connectivity``,
         ``R_viewpoint``)."""
         return dict(self._parts)
+
+    def _geometry(self, obs: Observations) -> tuple[np.ndarray, np.ndarray]:
+        return view_geometry(obs.visible, obs.distance, obs.direction, self.points)
+
+    def _match(self, rows_a, rows_b) -> np.ndarray | float:
+        """g between the stored rows ``rows_a`` x ``rows_b`` (1.0 without the matchable overlap)."""
+        if not self.params.matchable_overlap:
+            return 1.0
+        ca, la = self._centre[rows_a], self._look[rows_a]
+        cb, lb = self._centre[rows_b], self._look[rows_b]
+        return pair_matchability(ca[:, None], la[:, None], cb[None], lb[None], self.params)
 
     def _row_scores(self, obs: Observations) -> tuple[np.ndarray, np.ndarray]:
         p = self.params
@@ -245,7 +286,8 @@ class ObjectiveState:
                 "connectivity": 0.0,
                 "R_viewpoint": 0.0,
             }
-        f = self._pair_scores(self.common, self.n_visible, self.n_visible)
+        rows = np.arange(n_vp)
+        f = self._pair_scores(self.common, self.n_visible, self.n_visible) * self._match(rows, rows)
         np.fill_diagonal(f, 0.0)
         s_ovl = float(_topk_sum(f, self.params.top_k).sum() / (self.params.top_k * n_vp))
         edges = f > self.params.tau_edge
@@ -326,7 +368,9 @@ class ObjectiveState:
         s_vis = (n_keep_vis.sum() + n_new.sum(axis=1)) / (n_total * n_pt)
 
         k = int(self.params.top_k)
-        f_kk = self._pair_scores(self.common[np.ix_(keep, keep)], n_keep_vis, n_keep_vis)
+        f_kk = self._pair_scores(self.common[np.ix_(keep, keep)], n_keep_vis, n_keep_vis) * self._match(
+            keep, keep
+        )
         np.fill_diagonal(f_kk, 0.0)
         a_keep = self.obs.visible[np.ix_(keep, cols)].astype(np.float32)  # (K, T)
         # one 2-D product: numpy's stacked matmul does not reach BLAS
@@ -334,6 +378,15 @@ class ObjectiveState:
         c_nn = np.rint(nv_cols @ np.swapaxes(nv_cols, 1, 2))  # (L, m, m)
         f_nk = self._pair_scores(c_nk, n_new, np.broadcast_to(n_keep_vis, (lam, n_keep)))
         f_nn = self._pair_scores(c_nn, n_new, n_new)
+        if self.params.matchable_overlap and m:
+            centre_n, look_n = (a.reshape(lam, m, 3) for a in self._geometry(new))
+            p = self.params
+            f_nk = f_nk * pair_matchability(
+                centre_n[:, :, None], look_n[:, :, None], self._centre[keep], self._look[keep], p
+            )
+            f_nn = f_nn * pair_matchability(
+                centre_n[:, :, None], look_n[:, :, None], centre_n[:, None], look_n[:, None], p
+            )
         f_nn[:, np.arange(m), np.arange(m)] = 0.0
         # kept rows: their own top-k among kept rows, merged with the m new columns
         top_kk = _topk_values(f_kk, k)  # (K, k)
@@ -362,7 +415,7 @@ class ObjectiveState:
         cache = self._removal_cache
         if cache is None:
             nv = self.n_visible
-            f = self._pair_scores(self.common, nv, nv)
+            f = self._pair_scores(self.common, nv, nv) * self._match(np.arange(n), np.arange(n))
             np.fill_diagonal(f, 0.0)
             width = min(k + 1, n)
             part = -np.partition(-f, width - 1, axis=1)[:, :width] if width < n else f

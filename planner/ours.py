@@ -58,6 +58,11 @@ DEFAULTS: dict = {
         "point_score": "per_view",
         "frontal_full_deg": 30.0,
         "frontal_cone_deg": 60.0,
+        "matchable_overlap": True,
+        "match_angle_full_deg": 30.0,
+        "match_angle_zero_deg": 45.0,
+        "match_scale_full": 1.5,
+        "match_scale_zero": 2.0,
     },
     "visibility": {
         "min_distance_m": 1.0,
@@ -147,6 +152,37 @@ def _positive(cfg: dict, *path: str) -> float:
     if value is None or not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
         raise PlanningError(f"planner ours: {'.'.join(path)} must be a positive number, got {value!r}")
     return float(value)
+
+
+def _match_settings(h: Mapping) -> dict:
+    return {
+        "matchable_overlap": bool(h["matchable_overlap"]),
+        "match_angle_full_deg": float(h["match_angle_full_deg"]),
+        "match_angle_zero_deg": float(h["match_angle_zero_deg"]),
+        "match_scale_full": float(h["match_scale_full"]),
+        "match_scale_zero": float(h["match_scale_zero"]),
+    }
+
+
+def detail_params(h: Mapping, d_t: float) -> HeuristicParams:
+    """The detail pass's ``HeuristicParams`` from the ``heuristics`` settings and the target
+    distance ``d_t`` (m): the one place the YAML's factors become metres."""
+    tol = float(h["distance_tolerance"])
+    return HeuristicParams(
+        k_count=int(h["k_count"]),
+        target_lo_m=d_t * (1.0 - tol),
+        target_hi_m=d_t * (1.0 + tol),
+        d_margin_m=float(h["d_margin_factor"]) * d_t,
+        r_min=float(h["r_min"]),
+        r_max=float(h["r_max"]),
+        top_k=int(h["top_k"]),
+        tau_edge=float(h["tau_edge"]),
+        eps=float(h["eps"]),
+        point_score=str(h["point_score"]),
+        frontal_full_deg=float(h["frontal_full_deg"]),
+        frontal_cone_deg=float(h["frontal_cone_deg"]),
+        **_match_settings(h),
+    )
 
 
 class _Recorder:
@@ -304,20 +340,7 @@ def _plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed:
             f"impossible limits: limits.min_clearance_m = {limits.min_clearance_m} m is not below the "
             f"target distance range (d_t = {d_t:.2f} m from target_gsd_m = {gsd})"
         )
-    det_params = HeuristicParams(
-        k_count=int(h["k_count"]),
-        target_lo_m=d_t * (1.0 - tol),
-        target_hi_m=d_t * (1.0 + tol),
-        d_margin_m=d_margin,
-        r_min=float(h["r_min"]),
-        r_max=float(h["r_max"]),
-        top_k=int(h["top_k"]),
-        tau_edge=float(h["tau_edge"]),
-        eps=float(h["eps"]),
-        point_score=str(h["point_score"]),
-        frontal_full_deg=float(h["frontal_full_deg"]),
-        frontal_cone_deg=float(h["frontal_cone_deg"]),
-    )
+    det_params = detail_params(h, d_t)
     d_c = _positive(cfg, "coverage", "distance_factor") * d_t
     ctol = float(cv["distance_tolerance"])
     if not 0.0 <= ctol < 1.0:
@@ -333,6 +356,7 @@ def _plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed:
         tau_edge=det_params.tau_edge,
         eps=det_params.eps,
         coverage_closeness_weight=float(cv["closeness_weight"]),
+        **_match_settings(h),
     )
     vis = cfg["visibility"]
     det_limits = VisibilityLimits(
@@ -360,7 +384,7 @@ def _plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed:
     )
     cov_model = det_model.with_limits(cov_limits)
     rec = _Recorder([det_model, cov_model])
-    state = ObjectiveState(det_params, n_points, mode="detail")
+    state = ObjectiveState(det_params, n_points, mode="detail", points=points)
     rec.record("sample", None, state, [], sample_time_s=time.perf_counter() - t0)
 
     fallbacks = tuple(float(f) for f in c["fallback_distance_factors"])
@@ -465,7 +489,7 @@ def _plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed:
     detail_parts = state.parts()  # Eq. 10 over the detail views, detail range
 
     # ------------------------------------------------------------------ model-coverage viewpoints
-    cstate = ObjectiveState(cov_params, n_points, mode="coverage")
+    cstate = ObjectiveState(cov_params, n_points, mode="coverage", points=points)
     cstate.reset(cov_model.observe(np.asarray(viewpoints)), point_rows=np.zeros(len(viewpoints), bool))
     rec.record("coverage_start", None, cstate, kinds)
     cov_excluded = np.zeros(n_points, bool)
@@ -519,7 +543,12 @@ def _plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed:
     # the angular spread of Eq. 4, so this is usually below ``final_detail_pass``.
     final_obs = cov_model.observe(vps)
     final = global_score(
-        final_obs.visible, final_obs.distance, final_obs.direction, final_obs.cos_incidence, det_params
+        final_obs.visible,
+        final_obs.distance,
+        final_obs.direction,
+        final_obs.cos_incidence,
+        det_params,
+        points,
     )
     takeoff = cfg["takeoff"]
     if takeoff is None:

@@ -18,9 +18,11 @@ from planner.heuristics import (
     global_score,
     overlap_pair_scores,
     overlap_ratios,
+    pair_matchability,
     point_scores,
     smith_w1,
     smith_w3,
+    view_geometry,
     view_quality,
     viewpoint_set_scores,
 )
@@ -37,6 +39,7 @@ PARAMS = HeuristicParams(  # Eq. 1-5 as printed: the hand-computed values below
     top_k=2,
     tau_edge=0.25,
     point_score="literal",
+    matchable_overlap=False,
 )
 
 
@@ -134,40 +137,50 @@ def test_global_score_is_point_sum_plus_P_times_viewpoint_score():
     assert g["R"] == pytest.approx(pts["R_point"].sum() + 20 * g["R_viewpoint"])
 
 
+def _points(n_pt: int) -> np.ndarray:
+    """The same (P, 3) ground samples (upward normals) for every call with ``n_pt``."""
+    xy = np.random.default_rng(n_pt).uniform(-10.0, 10.0, (n_pt, 2))
+    return np.column_stack([xy, np.zeros(n_pt)])
+
+
 def _random_obs(rng, n_vp: int, n_pt: int, density: float = 0.3) -> Observations:
-    """Observations of points on the upper hemisphere side, visibility in blocks (several components)."""
+    """Observations of ``_points(n_pt)`` from cameras 4-14 m above them; visibility in blocks
+    (several components). Directions and distances follow the cameras' true positions."""
     vis = rng.random((n_vp, n_pt)) < density
     block = rng.integers(0, 3, n_vp)  # viewpoints of a block see mostly the same third of the points
     third = np.arange(n_pt) * 3 // n_pt
     vis &= (block[:, None] == third[None]) | (rng.random((n_vp, n_pt)) < 0.05)
-    u = rng.normal(size=(n_vp, n_pt, 3))
-    u[..., 2] = np.abs(u[..., 2]) + 0.5
-    u /= np.linalg.norm(u, axis=-1, keepdims=True)
+    centres = np.column_stack([rng.uniform(-10.0, 10.0, (n_vp, 2)), rng.uniform(4.0, 14.0, n_vp)])
+    offset = centres[:, None] - _points(n_pt)[None]
+    distance = np.linalg.norm(offset, axis=-1)
+    u = offset / distance[..., None]
     return Observations(
         visible=vis,
-        distance=rng.uniform(4.0, 18.0, (n_vp, n_pt)).astype(np.float32),
+        distance=distance.astype(np.float32),
         direction=np.where(vis[..., None], u, 0.0).astype(np.float32),
         cos_incidence=u[..., 2].astype(np.float32),
     )
 
 
 def _reference(obs: Observations, params, mode="detail", point_rows=None):
+    points = _points(obs.visible.shape[1])
     if mode == "detail":
-        return global_score(obs.visible, obs.distance, obs.direction, obs.cos_incidence, params)
+        return global_score(obs.visible, obs.distance, obs.direction, obs.cos_incidence, params, points)
     rows = np.ones(len(obs), bool) if point_rows is None else point_rows
     pts = coverage_point_scores(obs.visible[rows], obs.distance[rows], params)
-    vset = viewpoint_set_scores(obs.visible, params)
+    geometry = view_geometry(obs.visible, obs.distance, obs.direction, points)
+    vset = viewpoint_set_scores(obs.visible, params, geometry)
     return {"R": pts.sum() + obs.visible.shape[1] * vset["R_viewpoint"], **vset}
 
 
-@pytest.mark.parametrize("point_score", ["literal", "per_view"])
+@pytest.mark.parametrize(("point_score", "matchable"), [("literal", False), ("per_view", True)])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_incremental_objective_matches_reference(seed, point_score):
+def test_incremental_objective_matches_reference(seed, point_score, matchable):
     rng = np.random.default_rng(seed)
     n_pt = 60
-    PARAMS = dataclasses.replace(globals()["PARAMS"], point_score=point_score)
+    PARAMS = dataclasses.replace(globals()["PARAMS"], point_score=point_score, matchable_overlap=matchable)
     base = _random_obs(rng, 14, n_pt)
-    state = ObjectiveState(PARAMS, n_pt)
+    state = ObjectiveState(PARAMS, n_pt, points=_points(n_pt))
     state.reset(base)
     assert state.R == pytest.approx(_reference(base, PARAMS)["R"], rel=1e-7, abs=1e-9)
     cluster = np.array([1, 4, 5, 9])
@@ -218,7 +231,7 @@ def test_incremental_coverage_objective_with_rows_not_counting_for_points():
     )
     base = _random_obs(rng, 10, n_pt)
     point_rows = np.r_[np.zeros(6, bool), np.ones(4, bool)]  # six detail rows, four coverage rows
-    state = ObjectiveState(params, n_pt, mode="coverage")
+    state = ObjectiveState(params, n_pt, mode="coverage", points=_points(n_pt))
     state.reset(base, point_rows=point_rows)
     assert state.R == pytest.approx(_reference(base, params, "coverage", point_rows)["R"], rel=1e-7)
     alts = _random_obs(rng, 4, n_pt)
@@ -236,7 +249,7 @@ def test_single_removal_shortcut_matches_general_evaluation(n_vp, top_k):
     rng = np.random.default_rng(n_vp)
     params = HeuristicParams(top_k=top_k, target_lo_m=8.0, target_hi_m=12.0, d_margin_m=4.0)
     obs = _random_obs(rng, n_vp, 60)
-    state = ObjectiveState(params, 60)
+    state = ObjectiveState(params, 60, points=_points(60))
     state.reset(obs)
     for i in range(n_vp):
         kept = obs.take(np.setdiff1d(np.arange(n_vp), [i]))
@@ -296,3 +309,34 @@ def test_frontality_is_full_to_30_deg_and_gone_at_60():
         dataclasses.replace(params, frontal_full_deg=60.0, frontal_cone_deg=30.0)
     with pytest.raises(PlanningError, match="point_score"):
         dataclasses.replace(params, point_score="best")
+
+
+def test_matchable_overlap_of_two_views_of_a_plane():
+    """Two downward views of a ground plane 10 m below: 4 m apart they link fully, 8 m apart they
+    meet at 2 atan(0.4) = 43.6 deg (g = (45 - 43.6) / 15), and one 1.75x farther has g = 0.5."""
+    params = dataclasses.replace(PARAMS, point_score="per_view", matchable_overlap=True, top_k=1)
+    xy = np.stack(np.meshgrid(np.linspace(-6, 14, 21), np.linspace(-5, 5, 11)), axis=-1).reshape(-1, 2)
+    points = np.column_stack([xy, np.zeros(len(xy))])
+
+    def observe(centre, radius):
+        offset = np.asarray(centre, dtype=float)[None] - points
+        distance = np.linalg.norm(offset, axis=1)
+        visible = np.linalg.norm(points[:, :2] - np.asarray(centre[:2]), axis=1) <= radius
+        return visible, distance, offset / distance[:, None]
+
+    def g_and_overlap(a, b, radius=4.5):
+        vis, dist, dirs = (np.stack(x) for x in zip(observe(a, radius), observe(b, radius), strict=True))
+        centre, look = view_geometry(vis, dist, dirs, points)
+        np.testing.assert_allclose(centre, [a, b], atol=1e-9)  # the camera centres are recovered
+        g = pair_matchability(centre[0], look[0], centre[1], look[1], params)
+        plain = dataclasses.replace(params, matchable_overlap=False)
+        f = viewpoint_set_scores(vis, plain)["overlap"]
+        return g, f, viewpoint_set_scores(vis, params, (centre, look))["overlap"]
+
+    g, f, matched = g_and_overlap([0.0, 0.0, 10.0], [4.0, 0.0, 10.0])
+    assert g == pytest.approx(1.0) and matched == pytest.approx(f) and f > 0
+    g, f, matched = g_and_overlap([0.0, 0.0, 10.0], [8.0, 0.0, 10.0], radius=6.0)
+    expected = (45.0 - math.degrees(2 * math.atan(0.4))) / 15.0
+    assert g == pytest.approx(expected, abs=1e-9) and matched == pytest.approx(f * expected)
+    g, _, _ = g_and_overlap([0.0, 0.0, 10.0], [0.0, 0.0, 17.5])
+    assert g == pytest.approx(0.5)

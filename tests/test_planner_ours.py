@@ -51,7 +51,7 @@ def scene():
 def added(scene):
     """State after one viewpoint addition stage (phase 1 + repair)."""
     _, model = scene
-    state = ObjectiveState(PARAMS, model.n_points)
+    state = ObjectiveState(PARAMS, model.n_points, points=model.points)
     vps, kinds = [], []
     excluded = np.zeros(model.n_points, bool)
     settings = CandidateSettings(distance_m=D_T)
@@ -131,7 +131,7 @@ def test_addition_gives_every_non_excluded_point_three_views(scene, added):
 def test_cmaes_never_lowers_R_and_keeps_limits(scene, added):
     _, model = scene
     state0, vps0, _, _ = added
-    state = ObjectiveState(PARAMS, model.n_points)
+    state = ObjectiveState(PARAMS, model.n_points, points=model.points)
     state.reset(model.observe(vps0))
     vps = vps0.copy()
     settings = CmaSettings(cluster_size=12, max_generations=3, popsize=6, position_box_m=2.0)
@@ -140,7 +140,8 @@ def test_cmaes_never_lowers_R_and_keeps_limits(scene, added):
     assert stats["R_before"] == pytest.approx(state0.R, rel=1e-9)
     obs = model.observe(vps)
     assert state.R == pytest.approx(
-        global_score(obs.visible, obs.distance, obs.direction, obs.cos_incidence, PARAMS)["R"], rel=1e-7
+        global_score(obs.visible, obs.distance, obs.direction, obs.cos_incidence, PARAMS, model.points)["R"],
+        rel=1e-7,
     )
     assert LIMITS.feasible(vps, model).all()
     assert (np.abs(vps[:, :3] - vps0[:, :3]) <= 2.0 + 1e-6).all()  # inside the position boxes
@@ -149,7 +150,7 @@ def test_cmaes_never_lowers_R_and_keeps_limits(scene, added):
 def test_culling_keeps_R_within_tolerance(scene, added):
     _, model = scene
     _, vps, _, _ = added
-    state = ObjectiveState(PARAMS, model.n_points)
+    state = ObjectiveState(PARAMS, model.n_points, points=model.points)
     state.reset(model.observe(vps))
     tol = 0.002 * model.n_points
     kept, stats = cull(state, np.ones(len(vps), bool), 0.8, tol)
@@ -157,7 +158,8 @@ def test_culling_keeps_R_within_tolerance(scene, added):
     assert stats["removed_redundant"] == len(vps) - kept.sum() - stats["removed_empty"]
     obs = model.observe(vps[kept])
     assert state.R == pytest.approx(
-        global_score(obs.visible, obs.distance, obs.direction, obs.cos_incidence, PARAMS)["R"], rel=1e-7
+        global_score(obs.visible, obs.distance, obs.direction, obs.cos_incidence, PARAMS, model.points)["R"],
+        rel=1e-7,
     )
 
 
