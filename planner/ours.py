@@ -98,7 +98,7 @@ DEFAULTS: dict = {
         "pitch_box_deg": 20.0,
         "yaw_box_deg": 30.0,
     },
-    "culling": {"overlap_threshold": 0.8, "tolerance": 0.002},
+    "culling": {"enabled": True, "overlap_threshold": 0.8, "tolerance": 0.002},
     "coverage": {
         "distance_factor": 2.5,
         "distance_tolerance": 0.2,
@@ -433,6 +433,11 @@ def _plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed:
     cul = cfg["culling"]
     cull_tol = float(cul["tolerance"]) * n_points
 
+    def cull_unless_off(objective: ObjectiveState, cullable: np.ndarray, desc: str):
+        if not bool(cul["enabled"]):  # the ablation without culling
+            return np.ones(len(cullable), bool), {"removed_empty": 0, "removed_redundant": 0}
+        return cull(objective, cullable, float(cul["overlap_threshold"]), cull_tol, desc=desc)
+
     # ------------------------------------------------------------------ detail viewpoints
     viewpoints: list[np.ndarray] = []
     kinds: list[str] = []
@@ -473,13 +478,7 @@ def _plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed:
         )
         viewpoints = list(vps)
         rec.record("detail_cmaes", r, state, kinds, **_drop_time(stats))
-        kept, stats = cull(
-            state,
-            np.ones(len(viewpoints), bool),
-            float(cul["overlap_threshold"]),
-            cull_tol,
-            desc=f"detail round {r + 1}: cull",
-        )
+        kept, stats = cull_unless_off(state, np.ones(len(viewpoints), bool), f"detail round {r + 1}: cull")
         viewpoints = [v for v, k in zip(viewpoints, kept, strict=True) if k]
         kinds = [s for s, k in zip(kinds, kept, strict=True) if k]
         rec.record("detail_culling", r, state, kinds, **_drop_time(stats))
@@ -525,12 +524,8 @@ def _plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed:
         )
         viewpoints = list(vps)
         rec.record("coverage_cmaes", r, cstate, kinds, **_drop_time(stats))
-        kept, stats = cull(
-            cstate,
-            np.asarray(kinds) == "coverage",
-            float(cul["overlap_threshold"]),
-            cull_tol,
-            desc=f"coverage round {r + 1}: cull",
+        kept, stats = cull_unless_off(
+            cstate, np.asarray(kinds) == "coverage", f"coverage round {r + 1}: cull"
         )
         viewpoints = [v for v, k in zip(viewpoints, kept, strict=True) if k]
         kinds = [s for s, k in zip(kinds, kept, strict=True) if k]

@@ -349,3 +349,32 @@ def test_latex_tables_compile(study, tmp_path):
     )
     assert result.returncode == 0, result.stdout[-2000:]
     assert (tmp_path / "doc.pdf").read_bytes()[:4] == b"%PDF"
+
+
+def test_ablation_variants_of_ours_get_their_own_table(tmp_path):
+    root = tmp_path / "ablation"
+    common = dict(acc90_m=0.03, acc95_m=0.04, comp_050=40.0, comp_075=50.0, n_images=150)
+    write_run(root, "tomb", "ours", 0, **common, comp_050_walls=35.0, predicted_well_observed_walls_pct=90.0)
+    write_run(
+        root,
+        "tomb",
+        "ours_literal_score",
+        0,
+        **common,
+        comp_050_walls=12.5,
+        predicted_well_observed_walls_pct=31.0,
+    )
+    write_run(root, "tomb", "yan", 0, **common, comp_050_walls=50.0, predicted_well_observed_walls_pct=75.0)
+    built = tables.build_tables([root])
+    ablation = built["ablation"]
+    assert set(ablation["planner"]) == {"ours", "ours_literal_score"}  # the baselines are not variants
+    walls = ablation[ablation["metric"] == "comp_050_walls"].set_index("planner")
+    assert walls.loc["ours", "mean"] == 35.0 and walls.loc["ours", "best"]
+    assert not walls.loc["ours_literal_score", "best"]
+    out = tmp_path / "tables"
+    tables.write_tables(built, out)
+    text = (out / "ablation.md").read_text()
+    assert "| Tomb | Ours Literal Score | 150 |" in text and "**35.00**" in text
+    assert "Ablation of ours" in (out / "tables.md").read_text()
+    # Without variants there is no ablation table.
+    assert "ablation" not in tables.build_tables([root / "tomb" / "yan"])
