@@ -22,7 +22,7 @@ import numpy as np
 
 from planner.base import PlanningError
 from planner.visibility import VisibilityModel
-from scene.camera import validate_viewpoint_array, yaw_pitch_from_direction
+from scene.camera import aim_at, validate_viewpoint_array
 
 
 @dataclass(frozen=True)
@@ -107,14 +107,6 @@ def candidate_directions(
     return dirs, np.r_[np.ones(len(frontal), bool), np.zeros(len(side), bool)], parent
 
 
-def aimed_viewpoints(positions: np.ndarray, target: np.ndarray, limits: FlightLimits) -> np.ndarray:
-    """(C, 5) viewpoints at ``positions`` (C, 3) aimed at ``target`` (3,), pitch clipped to the gimbal."""
-    pos = np.asarray(positions, dtype=float).reshape(-1, 3)
-    yaw, pitch = yaw_pitch_from_direction(np.asarray(target, dtype=float)[None] - pos)
-    pitch = np.clip(pitch, limits.pitch_min_deg, limits.pitch_max_deg)
-    return np.column_stack([pos, yaw, pitch])
-
-
 def select_spread(directions: np.ndarray, first: int, size: int, allowed=None) -> list[int]:
     """Greedy angular spread: start at ``first``, then add the ``allowed`` index whose smallest
     angle to the chosen ones is largest (ties: the smallest sum of cosines to the chosen ones, then
@@ -185,7 +177,7 @@ def valid_candidates(
             settings.n_side,
             settings.side_angle_deg,
         )
-        vps = aimed_viewpoints(p[None] + distance * dirs, p, limits)
+        vps = aim_at(p[None] + distance * dirs, p, limits.pitch_min_deg, limits.pitch_max_deg)
         ok = limits.feasible(vps, model)
         if ok.any():
             rows = np.flatnonzero(ok)

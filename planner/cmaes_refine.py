@@ -40,9 +40,9 @@ class CmaSettings:
     """
 
     cluster_size: int = 12
-    max_generations: int = 10
+    max_generations: int = 6
     popsize: int | None = None
-    sigma0: float = 0.2
+    sigma0: float = 0.25
     position_box_m: float = 3.0
     pitch_box_deg: float = 20.0
     yaw_box_deg: float = 30.0

@@ -19,6 +19,7 @@ import copy
 import math
 import time
 from collections.abc import Mapping
+from pathlib import Path
 
 import numpy as np
 import trimesh
@@ -43,75 +44,22 @@ from planner.trajectory import flight_length, order_viewpoints
 from planner.visibility import VisibilityLimits, VisibilityModel
 from scene.camera import Intrinsics
 
-DEFAULTS: dict = {
-    "n_points": 2048,
-    "target_gsd_m": 0.03,
-    "heuristics": {
-        "k_count": 3,
-        "distance_tolerance": 0.2,
-        "d_margin_factor": 0.5,
-        "r_min": 0.1,
-        "r_max": 0.5,
-        "top_k": 4,
-        "tau_edge": 0.25,
-        "eps": 1e-9,
-        "point_score": "per_view",
-        "frontal_full_deg": 30.0,
-        "frontal_cone_deg": 60.0,
-        "matchable_overlap": True,
-        "match_angle_full_deg": 30.0,
-        "match_angle_zero_deg": 45.0,
-        "match_scale_full": 1.5,
-        "match_scale_zero": 2.0,
-    },
-    "visibility": {
-        "min_distance_m": 1.0,
-        "max_incidence_deg": 80.0,
-        "ray_offset_m": 0.02,
-        "image_margin_px": 0.0,
-    },
-    "limits": {
-        "pitch_min_deg": -90.0,
-        "pitch_max_deg": 30.0,
-        "min_altitude_m": 2.0,
-        "min_clearance_m": 3.0,
-        "reject_enclosed": True,
-    },
-    "candidates": {
-        "group_size": 3,
-        "n_frontal": 5,
-        "frontal_jitter_deg": 10.0,
-        "n_side": 8,
-        "side_angle_deg": 25.0,
-        "fallback_distance_factors": [0.7, 0.5],
-        "fallback_tilt_deg": [30.0],
-    },
-    "addition": {"repair_threshold": 0.5, "repair_max_groups": 100},
-    "detail_rounds": 4,
-    "coverage_rounds": 3,
-    "cmaes": {
-        "cluster_size": 12,
-        "max_generations": 6,
-        "popsize": None,
-        "sigma0": 0.25,
-        "position_box_factor": 0.2,
-        "pitch_box_deg": 20.0,
-        "yaw_box_deg": 30.0,
-    },
-    "culling": {"enabled": True, "overlap_threshold": 0.8, "tolerance": 0.002},
-    "coverage": {
-        "distance_factor": 2.5,
-        "distance_tolerance": 0.2,
-        "d_margin_factor": 1.5,
-        "k_count": 3,
-        "closeness_weight": 0.1,
-        "group_size": 3,
-        "repair_threshold": 0.95,
-        "repair_max_groups": 20,
-    },
-    "takeoff": None,
-    "tsp_runs": 3,
-}
+
+def _yaml_defaults() -> dict:
+    """``conf/planner/ours.yaml`` (the one place ours' settings and their reasons live), with the
+    shared target GSD taken from ``conf/config.yaml``; Hydra's ``name`` and ``_target_`` dropped."""
+    from omegaconf import OmegaConf
+
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    survey = OmegaConf.load(conf / "config.yaml").survey
+    merged = OmegaConf.create({"survey": survey, "ours": OmegaConf.load(conf / "planner" / "ours.yaml")})
+    out = OmegaConf.to_container(merged.ours, resolve=True)
+    out.pop("name")
+    out.pop("_target_")
+    return out
+
+
+DEFAULTS: dict = _yaml_defaults()
 
 
 def resolve_params(params: Mapping | None) -> dict:

@@ -20,28 +20,16 @@ resolution term ``scale = 1 - d / d_max`` and ``cos(theta)``.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-K1 = 32.0
-ALPHA1 = math.pi / 16.0
-K3 = 8.0
-ALPHA3 = math.pi / 4.0
+# w1 (triangulation) and w3 (matchability) with Smith et al.'s constants live in planner.heuristics.
+from planner.heuristics import smith_w1 as w1
+from planner.heuristics import smith_w3 as w3
+
 MIN_COS_INCIDENCE = 0.087  # ~ cos(85 deg), the public code's incidence limit
 MAX_RAYS = 32
 H_TARGET = 3.0
 H_UNOBSERVED = -1.0
-
-
-def w1(alpha) -> np.ndarray:
-    """Triangulation weight of the angle ``alpha`` (radians) between two rays."""
-    return 1.0 / (1.0 + np.exp(-K1 * (np.asarray(alpha, dtype=float) - ALPHA1)))
-
-
-def w3(alpha) -> np.ndarray:
-    """Matchability weight of the angle ``alpha`` (radians) between two rays."""
-    return 1.0 - 1.0 / (1.0 + np.exp(-K3 * (np.asarray(alpha, dtype=float) - ALPHA3)))
 
 
 def pair_terms(dir_a, scale_a, cos_a, dir_b, scale_b, cos_b) -> np.ndarray:

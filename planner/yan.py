@@ -44,7 +44,7 @@ from planner.base import Plan, PlanningError, merge_params
 from planner.sampling import sample_surface, validate_proxy
 from planner.trajectory import order_viewpoints
 from planner.visibility import VisibilityLimits, VisibilityModel
-from scene.camera import Intrinsics, yaw_pitch_from_direction
+from scene.camera import Intrinsics, aim_at
 
 DEFAULTS = {
     "n_samples": 4000,
@@ -167,12 +167,6 @@ def view_sampling_space(model: VisibilityModel, proxy: trimesh.Trimesh, params: 
             f"{d_max:.2f}] m above min_altitude_m = {params['min_altitude_m']} m is empty"
         )
     return inside
-
-
-def aim(positions: np.ndarray, targets: np.ndarray, pitch_min: float, pitch_max: float) -> np.ndarray:
-    """(N, 5) viewpoints at ``positions`` looking at ``targets`` (pitch clipped to the gimbal range)."""
-    yaw, pitch = yaw_pitch_from_direction(np.asarray(targets) - np.asarray(positions))
-    return np.column_stack([positions, yaw, np.clip(pitch, pitch_min, pitch_max)])
 
 
 def view_scores(
@@ -364,7 +358,7 @@ def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: 
     jitter = (rng.random((n_cand, 3)) - 0.5) * float(p["voxel_size_m"])
     positions = space[pick] + jitter
     positions[:, 2] = np.maximum(positions[:, 2], float(p["min_altitude_m"]))
-    candidates = aim(positions, model.closest_points(positions), *pitch_lim)
+    candidates = aim_at(positions, model.closest_points(positions), *pitch_lim)
     timings["candidates"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -385,7 +379,7 @@ def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: 
                 continue
             best = cand[free][np.argmax(val[free])]
             taken[best] = True
-            local_vps.append(aim(positions[best][None], points[low[k]][None], *pitch_lim)[0])
+            local_vps.append(aim_at(positions[best][None], points[low[k]][None], *pitch_lim)[0])
     local_vps = np.array(local_vps).reshape(-1, 5)
     counts_local = np.zeros(len(points), np.int64)
     if len(local_vps):

@@ -178,6 +178,15 @@ def look_at(position, target) -> Viewpoint:
     return Viewpoint(*position.tolist(), float(yaw), float(pitch))
 
 
+def aim_at(positions, targets, pitch_min_deg: float = -90.0, pitch_max_deg: float = 90.0) -> np.ndarray:
+    """(N, 5) viewpoints at ``positions`` (N, 3) looking at ``targets`` ((N, 3) or one (3,)), the
+    pitch clipped to the gimbal range [``pitch_min_deg``, ``pitch_max_deg``] (the one place a
+    planner aims a view at a point)."""
+    pos = np.asarray(positions, dtype=float).reshape(-1, 3)
+    yaw, pitch = yaw_pitch_from_direction(np.asarray(targets, dtype=float) - pos)
+    return np.column_stack([pos, yaw, np.clip(pitch, pitch_min_deg, pitch_max_deg)])
+
+
 def world_from_cam_rotation(yaw_deg, pitch_deg) -> np.ndarray:
     """Rotations (..., 3, 3) whose columns are the OpenCV camera axes (right, down, forward) in world.
 

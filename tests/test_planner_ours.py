@@ -72,7 +72,7 @@ def added(scene):
     return state, np.asarray(vps), excluded, stats
 
 
-def test_config_file_matches_defaults():
+def test_defaults_are_the_config_file():
     cfg = yaml.safe_load((ROOT / "conf" / "planner" / "ours.yaml").read_text())
     # the shared target GSD is interpolated from the run config
     assert cfg["target_gsd_m"] == "${survey.target_gsd_m}"
