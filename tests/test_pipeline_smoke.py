@@ -61,6 +61,15 @@ def test_every_cell_scores_finite_numbers(smoke_sweep):
             assert r["acc95_m"] < 0.5
         n_rows = len((run_dir / "plan" / "viewpoints.csv").read_text().strip().splitlines()) - 1
         assert n_rows == r["n_images"]
+        # The plan's own forecast, recorded before it is flown, in plan.json and metrics.json alike.
+        forecast = json.loads((run_dir / "plan" / "plan.json").read_text())["predicted_coverage"]
+        for surface in ("ground", "roofs", "walls"):
+            key = f"predicted_well_observed_{surface}_pct"
+            assert 0.0 <= r[key] <= 100.0 and forecast[key] == r[key], key
+    by_planner = {r["planner"]: r for r in records}
+    # ours plans close, frontal wall views; the lawnmower's grid does not.
+    walls = "predicted_well_observed_walls_pct"
+    assert by_planner["ours"][walls] > by_planner["lawnmower"][walls] + 10.0
 
 
 def test_proxy_is_built_once_per_scene(smoke_sweep):
