@@ -4,7 +4,7 @@
 
 Two default-mode reconstructions of the same exploratory flight give proxies a few millimetres apart
 (the smoke tomb: median 3.1 mm, 90th percentile 11 mm between the two surfaces; see
-``results/noise_floor.md``). Each planner plans once on the proxy as it is and ``--repeats`` times on
+``results/reproducibility.md``). Each planner plans once on the proxy as it is and ``--repeats`` times on
 copies whose vertices moved along their normals by Gaussian noise of ``--sigma-mm`` (5 mm: median
 offset 3.4 mm, 90th percentile 8 mm), with the same planner seed. Per plan it reports the image count,
 the flight length, how far the views moved (each view to the nearest view of the unperturbed plan)
