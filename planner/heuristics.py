@@ -250,39 +250,28 @@ def point_scores(
             "sigma": zero,
             "R_point": zero,
         }
-    if params.point_score == "per_view":
-        quality = view_quality(vis, distance, cos_incidence, params)
-        good = quality > 0
-        sigma = angular_spread(direction, good, params.eps)
-        parallax = smith_w1(sigma) * smith_w3(sigma)
-        s_quality = top_k_mean(quality, int(params.k_count))
-        return {
-            "front": np.where(vis, np.maximum(cos_incidence, 0.0), 0.0).max(axis=0).astype(float),
-            "distance": np.where(
-                vis, distance_score(distance, params.target_lo_m, params.target_hi_m, params.d_margin_m), 0.0
-            )
-            .max(axis=0)
-            .astype(float),
-            "quality": s_quality,
-            "parallax": parallax,
-            "count": np.minimum(1.0, good.sum(axis=0) / float(params.k_count)),
-            "sigma": sigma,
-            "R_point": s_quality * parallax,
-        }
     front = np.where(vis, np.maximum(cos_incidence, 0.0), 0.0).max(axis=0)
     dscore = distance_score(distance, params.target_lo_m, params.target_hi_m, params.d_margin_m)
     dist = np.where(vis, dscore, 0.0).max(axis=0)
-    sigma = angular_spread(direction, vis, params.eps)
+    if params.point_score == "per_view":
+        quality = view_quality(vis, distance, cos_incidence, params)
+        counted = quality > 0  # the good views: close and frontal
+        s_quality = top_k_mean(quality, int(params.k_count))
+    else:
+        counted = vis
+    sigma = angular_spread(direction, counted, params.eps)
     parallax = smith_w1(sigma) * smith_w3(sigma)
-    count = np.minimum(1.0, vis.sum(axis=0) / float(params.k_count))
+    count = np.minimum(1.0, counted.sum(axis=0) / float(params.k_count))
+    if params.point_score != "per_view":
+        s_quality = front * dist * count
     return {
         "front": front.astype(float),
         "distance": dist.astype(float),
-        "quality": (front * dist * count).astype(float),
+        "quality": np.asarray(s_quality, dtype=float),
         "parallax": parallax,
         "count": count,
         "sigma": sigma,
-        "R_point": front * dist * parallax * count,
+        "R_point": s_quality * parallax,
     }
 
 
