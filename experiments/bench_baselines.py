@@ -4,7 +4,10 @@ Each planner plans on the scene's degraded ground truth (``reconstruct.proxy.deg
 the ground truth cropped to the evaluation region, decimated and noised; a stand-in for the proxy
 that needs no exploratory reconstruction) with its ``conf/planner/<name>.yaml`` settings and the
 run camera of ``conf/config.yaml``. Prints one row per (scene, planner): images, planning time, its
-largest stages, flight length and the planner's own objective or coverage figures. The machine is
+largest stages, flight length, the planner's own objective before and after optimisation (Smith) or
+coverage figures, and the forecast every run records (``experiments.observations.predicted_coverage``:
+the share of the proxy's wall / roof / ground samples with >= 3 planned views within 1.3 d_t and
+60 deg of the normal). The machine is
 shared, so compare times within one run.
 
     python experiments/bench_baselines.py                          # tomb church cathedral x all
@@ -68,6 +71,8 @@ def main(argv=None) -> int:
 
     from omegaconf import OmegaConf
 
+    from evaluate.settings import EvaluationSettings
+    from experiments.observations import predicted_coverage
     from reconstruct.proxy import degraded_ground_truth
     from scene.camera import Intrinsics
     from scene.io import write_json_atomic
@@ -96,6 +101,11 @@ def main(argv=None) -> int:
             plan = module.plan(proxy, intrinsics, params, args.seed)
             seconds = time.perf_counter() - t0
             record = {"scene": scene_name, "planner": planner_name, **plan_record(plan, seconds)}
+            # The same forecast run.py records for every planner (issue "Planner ours"'s count).
+            settings = EvaluationSettings.from_config(cfg.evaluate)
+            target_distance = float(cfg.survey.target_gsd_m) * intrinsics.focal_px
+            forecast = predicted_coverage(proxy, plan.viewpoints, intrinsics, target_distance, settings)
+            record.update({k: round(v, 1) for k, v in forecast.items()})
             records.append(record)
             extras = {
                 k: v for k, v in record.items() if k not in ("scene", "planner", "n_images", "plan_time_s")
@@ -105,9 +115,20 @@ def main(argv=None) -> int:
                 + json.dumps(extras, default=float),
                 flush=True,
             )
-    print("\nscene      planner    images  plan_s")
+    print(
+        "\nscene      planner    images  plan_s  objective initial -> final"
+        "   3 good views (%): walls roofs ground"
+    )
     for r in records:
-        print(f"{r['scene']:10s} {r['planner']:9s} {r['n_images']:7d} {r['plan_time_s']:7.1f}")
+        objective = " " * 20
+        if "objective_final" in r:
+            objective = f"{r['objective_initial']:8.3f} -> {r['objective_final']:8.3f}"
+        shares = "  ".join(
+            f"{r.get(f'predicted_well_observed_{c}_pct', float('nan')):5.1f}"
+            for c in ("walls", "roofs", "ground")
+        )
+        row = f"{r['scene']:10s} {r['planner']:9s} {r['n_images']:7d} {r['plan_time_s']:7.1f}"
+        print(f"{row}  {objective}                   {shares}")
     if args.json:
         write_json_atomic(args.json, records)
     return 0

@@ -16,12 +16,16 @@ from omegaconf import DictConfig, OmegaConf
 
 from experiments.cache import cache_key, cached_entry
 from planner.base import write_plan
-from scene.base import Scene
+from planner.sampling import PROXY_CLOUD_KEY
+from reconstruct.proxy import oriented_cloud
+from scene.base import Box, Scene
 from scene.camera import Intrinsics
 
 log = logging.getLogger(__name__)
 
 PROXY_FILE = "proxy.ply"
+# Voxel (m) of the exploratory cloud handed to the planners with the proxy: ~100 points per m^2.
+CLOUD_VOXEL_M = 0.1
 WORKDIR_REUSE_FLAGS = ("cached", "proxy_cached")
 
 
@@ -84,6 +88,13 @@ def build_exploration_proxy(
 
     entry, record = cached_entry(cfg.cache_dir, "exploration", exploration_cache_key(cfg, scene), build)
     proxy = trimesh.load(entry / PROXY_FILE, force="mesh", process=False)
+    dense_ply = entry / "recon" / "dense.ply"
+    if dense_ply.is_file():
+        # The coarse model's own points, for planners that read them (Yan's confidence term).
+        box = Box.from_points(proxy.vertices)
+        proxy.metadata[PROXY_CLOUD_KEY] = oriented_cloud(
+            dense_ply, box.expanded(1.0, 1.0, 1.0), CLOUD_VOXEL_M
+        )
     # ``cached``/``proxy_cached`` say whether build_proxy reused its own work folder; a cache entry is
     # always built fresh, so they read false even on a hit. ``cache_hit`` is the field that tells.
     record = {k: v for k, v in record.items() if k not in WORKDIR_REUSE_FLAGS}

@@ -7,6 +7,11 @@ import trimesh
 
 from planner.base import PlanningError
 
+# ``proxy.metadata`` key of the exploratory flight's oriented cloud, {"points": (N, 3), "normals":
+# (N, 3)} in world metres, when the proxy was reconstructed (planners that read the coarse model's
+# points, such as Yan's confidence term, use it; a degraded ground truth has none).
+PROXY_CLOUD_KEY = "exploration_cloud"
+
 
 def validate_proxy(mesh: trimesh.Trimesh, name: str = "proxy") -> trimesh.Trimesh:
     """Return ``mesh`` if it has finite vertices and positive surface area; raise PlanningError.

@@ -2,10 +2,11 @@
 scenes", Remote Sensing 13(5):989) baseline. No public code: built from the paper's description and
 ``reference/baselines.md``; every value the paper leaves open is a documented parameter.
 
-1. Surface samples of the proxy (4000, as the seed paper gave it) and a per-sample quality: the
-   smoothness of the normals around it, sum_j exp(-|s_i - s_j| / R) exp(-(1 - n_i.n_j)^2 / (1 -
-   cos theta_t)^2) / sum_j exp(-|s_i - s_j| / R), min-max normalised (the paper also multiplies a
-   Poisson-gradient confidence, which a proxy handed to us does not carry).
+1. Surface samples of the proxy (4000, as the seed paper gave it) and a per-sample quality: a
+   Poisson-gradient confidence (``poisson_gradient``: how strongly the exploratory flight's oriented
+   points support the surface there, read from ``proxy.metadata["exploration_cloud"]``; 1 for a
+   proxy without a cloud) times the smoothness of the normals around it, sum_j exp(-|s_i - s_j| / R)
+   exp(-(1 - n_i.n_j)^2 / (1 - cos theta_t)^2) / sum_j exp(-|s_i - s_j| / R), min-max normalised.
 2. No-fly space: closer than d_min to the proxy (or under it: the sky straight above is blocked).
    View-sampling space: voxels whose distance to the proxy lies in [d_min, d_max]. The paper gives no
    numbers; reimplementations used 25 / 35 m around d_opt = 30 m, scaled here to the target GSD
@@ -41,7 +42,7 @@ from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from planner.base import Plan, PlanningError, merge_params
-from planner.sampling import sample_surface, validate_proxy
+from planner.sampling import PROXY_CLOUD_KEY, sample_surface, validate_proxy
 from planner.trajectory import order_viewpoints
 from planner.visibility import VisibilityLimits, VisibilityModel
 from scene.camera import Intrinsics, aim_at
@@ -61,6 +62,9 @@ DEFAULTS = {
     "pitch_max_deg": 30.0,
     "quality_radius_m": 2.0,
     "quality_threshold": 0.5,
+    "confidence": "poisson_gradient",
+    "confidence_radius_m": 0.5,
+    "confidence_percentile": 95.0,
     "min_score": 0.1,
     "min_observations": 2,
     "adjacency_m": 1.0,
@@ -73,6 +77,9 @@ DEFAULTS = {
     "batch_size": 2000,
     "progress": True,
 }
+
+
+CONFIDENCES = ("poisson_gradient", "none")
 
 
 def _merged(params: Mapping | None) -> dict:
@@ -93,6 +100,14 @@ def _merged(params: Mapping | None) -> dict:
         raise ValueError("yan: min_observations and n_candidates must be >= 1")
     if not float(merged["voxel_size_m"]) > 0.0:
         raise ValueError(f"yan: voxel_size_m must be > 0, got {merged['voxel_size_m']}")
+    if merged["confidence"] not in CONFIDENCES:
+        raise ValueError(f"yan: confidence must be one of {CONFIDENCES}, got {merged['confidence']!r}")
+    if not float(merged["confidence_radius_m"]) > 0.0:
+        raise ValueError(f"yan: confidence_radius_m must be > 0, got {merged['confidence_radius_m']}")
+    if not 0.0 < float(merged["confidence_percentile"]) <= 100.0:
+        raise ValueError(
+            f"yan: confidence_percentile must lie in (0, 100], got {merged['confidence_percentile']}"
+        )
     return merged
 
 
@@ -108,18 +123,24 @@ def distance_limits(params: Mapping, intrinsics: Intrinsics) -> tuple[float, flo
 
 
 def sample_quality(
-    points: np.ndarray, normals: np.ndarray, radius_m: float, theta_t_deg: float
+    points: np.ndarray,
+    normals: np.ndarray,
+    radius_m: float,
+    theta_t_deg: float,
+    confidence: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Normal-smoothness quality (P,) in [0, 1] of surface samples (low: edges, corners, noise).
+    """Quality (P,) in [0, 1] of surface samples (low: edges, corners, noise, poor support).
 
-    Weighted mean over neighbours within ``2 * radius_m`` of exp(-(1 - n_i.n_j)^2 / (1 - cos theta_t)^2),
-    weights exp(-|s_i - s_j| / radius_m), min-max normalised over the samples.
+    The confidence (P,) in [0, 1] (None: ones) times the weighted mean over neighbours within
+    ``2 * radius_m`` of exp(-(1 - n_i.n_j)^2 / (1 - cos theta_t)^2), weights exp(-|s_i - s_j| /
+    radius_m); min-max normalised over the samples.
     """
+    n = len(points)
+    confidence = np.ones(n) if confidence is None else np.asarray(confidence, dtype=float)
     tree = cKDTree(points)
     pairs = tree.query_pairs(2.0 * float(radius_m), output_type="ndarray")
-    n = len(points)
     if len(pairs) == 0:
-        return np.ones(n)
+        return _min_max(confidence)
     i, j = pairs[:, 0], pairs[:, 1]
     dist = np.linalg.norm(points[i] - points[j], axis=1)
     weight = np.exp(-dist / float(radius_m))
@@ -127,9 +148,64 @@ def sample_quality(
     smooth = np.exp(-((1.0 - np.sum(normals[i] * normals[j], axis=1)) ** 2) / denom)
     num = np.bincount(i, weight * smooth, n) + np.bincount(j, weight * smooth, n)
     den = np.bincount(i, weight, n) + np.bincount(j, weight, n)
-    q = np.where(den > 0, num / np.maximum(den, 1e-12), 1.0)
-    span = q.max() - q.min()
-    return (q - q.min()) / span if span > 1e-12 else np.ones(n)
+    smoothness = np.where(den > 0, num / np.maximum(den, 1e-12), 1.0)
+    return _min_max(confidence * smoothness)
+
+
+def _min_max(values: np.ndarray) -> np.ndarray:
+    """``values`` scaled to [0, 1]; ones when they are all equal."""
+    span = values.max() - values.min()
+    return (values - values.min()) / span if span > 1e-12 else np.ones(len(values))
+
+
+def poisson_gradient(
+    points: np.ndarray, cloud_points: np.ndarray, cloud_normals: np.ndarray, radius_m: float
+) -> np.ndarray:
+    """Magnitude (P,) of the oriented cloud's normal field at ``points``: |sum_j w_j n_j|.
+
+    Poisson surface reconstruction (Kazhdan et al. 2006) solves grad(chi) = V for the field V of
+    the cloud's normals splatted with a smoothing kernel, so |V| at a surface point is the gradient
+    of the indicator function there: large where many consistently oriented points support the
+    surface, small where the cloud was sparse or its normals disagree. This is the confidence of
+    Wu et al. 2014 ("Quality-driven Poisson-guided autoscanning"), which Yan et al. 2021 reuse.
+    Kernel: Gaussian weights w_j = exp(-|p - c_j|^2 / (2 (radius_m / 2)^2)) over cloud points
+    within ``radius_m`` (m). Unit: weighted points; 0 where no cloud point lies within the radius.
+    """
+    points = np.asarray(points, dtype=float)
+    cloud_points = np.asarray(cloud_points, dtype=float)
+    if len(cloud_points) == 0:
+        return np.zeros(len(points))
+    pairs = cKDTree(points).sparse_distance_matrix(
+        cKDTree(cloud_points), float(radius_m), output_type="ndarray"
+    )
+    sigma = 0.5 * float(radius_m)
+    weight = np.exp(-(pairs["v"] ** 2) / (2.0 * sigma * sigma))
+    normals = np.asarray(cloud_normals, dtype=float)[pairs["j"]]
+    field = np.stack(
+        [np.bincount(pairs["i"], weight * normals[:, k], minlength=len(points)) for k in range(3)], axis=1
+    )
+    return np.linalg.norm(field, axis=1)
+
+
+def sample_confidence(proxy: trimesh.Trimesh, points: np.ndarray, params: Mapping) -> tuple[np.ndarray, str]:
+    """Confidence (P,) in [0, 1] of the samples and where it came from.
+
+    ``poisson_gradient`` on the exploratory flight's cloud (``proxy.metadata[PROXY_CLOUD_KEY]``), divided by
+    its ``confidence_percentile`` over the samples and clipped at 1 (a few samples on densely
+    observed roofs would otherwise squeeze every other sample towards 0); ones when the setting is
+    ``none`` or the proxy carries no cloud (a degraded ground truth).
+    """
+    cloud = proxy.metadata.get(PROXY_CLOUD_KEY) if params["confidence"] == "poisson_gradient" else None
+    if cloud is None:
+        source = "none" if params["confidence"] == "none" else "none (the proxy carries no cloud)"
+        return np.ones(len(points)), source
+    gradient = poisson_gradient(
+        points, cloud["points"], cloud["normals"], float(params["confidence_radius_m"])
+    )
+    scale = float(np.percentile(gradient, float(params["confidence_percentile"])))
+    if scale <= 0.0:
+        return np.ones(len(points)), "none (no cloud point near the samples)"
+    return np.clip(gradient / scale, 0.0, 1.0), "poisson_gradient"
 
 
 def view_sampling_space(model: VisibilityModel, proxy: trimesh.Trimesh, params: Mapping) -> np.ndarray:
@@ -348,7 +424,10 @@ def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: 
     points, normals = sample_surface(proxy, int(p["n_samples"]), seed)
     limits = VisibilityLimits(d_min, d_max, float(p["max_incidence_deg"]))
     model = VisibilityModel(proxy, points, normals, intrinsics, limits)
-    quality = sample_quality(points, normals, float(p["quality_radius_m"]), float(p["theta_t_deg"]))
+    confidence, confidence_source = sample_confidence(proxy, points, p)
+    quality = sample_quality(
+        points, normals, float(p["quality_radius_m"]), float(p["theta_t_deg"]), confidence
+    )
     timings["samples"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -431,6 +510,7 @@ def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: 
         "d_max_m": d_max,
         "n_samples": int(len(points)),
         "n_low_quality": int(len(low)),
+        "confidence_source": confidence_source,
         "n_view_space_voxels": int(len(space)),
         "n_candidates": int(n_cand),
         "n_local": int(len(local_vps)),

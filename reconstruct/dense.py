@@ -258,16 +258,26 @@ def disparity_search_range(pair: RectifiedPair, depth: np.ndarray, max_num_dispa
     """SGBM (min_disparity, num_disparities) covering sparse points at rectified depths ``depth`` (m).
 
     The 2nd-98th percentile of their disparities, widened by 25 %; None with fewer than 5 points.
+    When that span exceeds ``max_num_disparities``, the window of that width holding the most sparse
+    points (80 % of it, with a tenth on each side as margin): a low view across the ground towards
+    a wall sees disparities from the near ground to the far background, and a window anchored at
+    the far end would leave out the wall in between.
     """
     depth = depth[depth > 0]
     if len(depth) < 5:
         return None
-    disparity = pair.K_rect[0, 0] * pair.baseline / depth
+    disparity = np.sort(pair.K_rect[0, 0] * pair.baseline / depth)
     d_lo, d_hi = np.percentile(disparity, [2.0, 98.0])
     d_lo, d_hi = d_lo / 1.25, d_hi * 1.25
     min_disp = int(math.floor(d_lo))
     num = int(math.ceil((d_hi - min_disp) / 16.0)) * 16
-    return min_disp, int(min(max(num, 16), max_num_disparities))
+    cap = int(max_num_disparities)
+    if num <= cap:
+        return min_disp, max(num, 16)
+    inner = 0.8 * cap
+    held = np.searchsorted(disparity, disparity + inner, side="right") - np.arange(len(disparity))
+    start = disparity[int(np.argmax(held))]
+    return int(math.floor(start - 0.1 * cap)), cap
 
 
 def textured_pixels(gray: np.ndarray, window_px: int, min_std: float) -> np.ndarray:

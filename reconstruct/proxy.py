@@ -108,6 +108,29 @@ def degraded_ground_truth(scene: Scene, cfg: Mapping, seed: int) -> trimesh.Trim
     return out
 
 
+def oriented_cloud(dense_ply, bounds: Box, voxel_m: float) -> dict[str, np.ndarray]:
+    """The fused cloud's points and unit normals inside ``bounds``, voxel-downsampled (m).
+
+    Returns:
+        {"points": (N, 3), "normals": (N, 3)} in world metres; empty arrays when the file has no
+        normals (the fusion writes them) or no point inside ``bounds``.
+    """
+    import open3d as o3d
+
+    cloud = o3d.io.read_point_cloud(str(dense_ply))
+    points = np.asarray(cloud.points)
+    empty = {"points": np.zeros((0, 3)), "normals": np.zeros((0, 3))}
+    if len(points) == 0 or not cloud.has_normals():
+        return empty
+    cloud = cloud.select_by_index(np.flatnonzero(bounds.contains(points)))
+    if voxel_m > 0:
+        cloud = cloud.voxel_down_sample(float(voxel_m))
+    normals = np.asarray(cloud.normals)
+    length = np.linalg.norm(normals, axis=1)
+    keep = length > 1e-9
+    return {"points": np.asarray(cloud.points)[keep], "normals": normals[keep] / length[keep, None]}
+
+
 def poisson_proxy(dense_ply, bounds: Box, cfg: Mapping, deterministic: bool = False) -> trimesh.Trimesh:
     """Proxy mesh from a fused dense cloud: crop, voxel-downsample, screened Poisson, density trim,
     crop again, decimate.

@@ -154,3 +154,62 @@ def test_no_valid_position_is_a_clear_error():
             {"min_altitude_m": 500.0, "progress": False, "target_distance_m": 10.0},
             seed=0,
         )
+
+
+def _grid_plane(spacing: float, half: float) -> np.ndarray:
+    ticks = np.arange(-half, half + 1e-9, spacing)
+    x, y = np.meshgrid(ticks, ticks)
+    return np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+
+
+def test_poisson_gradient_on_a_plane_is_the_kernel_integral():
+    # Oriented points every 5 cm: away from the edges |V| is the Gaussian's integral over the disc of
+    # radius r, 2 pi sigma^2 (1 - exp(-r^2 / (2 sigma^2))) / h^2 with sigma = r / 2.
+    cloud = _grid_plane(0.05, 5.0)
+    up = np.tile([0.0, 0.0, 1.0], (len(cloud), 1))
+    radius, sigma = 0.5, 0.25
+    expected = 2 * np.pi * sigma**2 * (1 - np.exp(-2.0)) / 0.05**2
+    probe = np.array([[0.0, 0.0, 0.0], [1.0, -2.0, 0.0], [5.0, 0.0, 0.0], [0.0, 0.0, 3.0]])
+    g = yan.poisson_gradient(probe, cloud, up, radius)
+    assert g[:2] == pytest.approx(expected, rel=0.02)
+    # On the cloud's edge (a column of points): half the disc plus half of that column's sum.
+    column = sigma * np.sqrt(2 * np.pi) * math.erf(radius / (sigma * np.sqrt(2))) / 0.05
+    assert g[2] == pytest.approx(expected / 2 + column / 2, rel=0.02)
+    assert g[3] == 0.0  # no point within the radius
+    # Normals that disagree (a noisy, badly supported surface) cancel.
+    flipped = up.copy()
+    flipped[::2] *= -1.0
+    assert yan.poisson_gradient(probe[:1], cloud, flipped, radius)[0] < 0.05 * expected
+
+
+def test_confidence_lowers_the_quality_where_the_cloud_is_sparse():
+    plane = _grid_plane(0.05, 5.0)
+    sparse_side = (plane[:, 0] > 0) & (np.arange(len(plane)) % 10 != 0)  # x > 0: a tenth of the points
+    cloud = plane[~sparse_side]
+    proxy = trimesh.creation.box(extents=(10.0, 10.0, 0.01))
+    up = np.tile([0.0, 0.0, 1.0], (len(cloud), 1))
+    proxy.metadata[yan.PROXY_CLOUD_KEY] = {"points": cloud, "normals": up}
+    samples = np.array([[-3.0, 0.0, 0.0], [-1.0, 2.0, 0.0], [3.0, 0.0, 0.0], [1.0, -2.0, 0.0]])
+    params = yan._merged({"confidence_percentile": 100.0})
+    confidence, source = yan.sample_confidence(proxy, samples, params)
+    assert source == "poisson_gradient"
+    np.testing.assert_allclose(confidence, [1.0, 1.0, 0.1, 0.1], atol=0.02)
+    quality = yan.sample_quality(samples, np.tile([0.0, 0.0, 1.0], (4, 1)), 1.0, 60.0, confidence)
+    np.testing.assert_allclose(quality, [1.0, 1.0, 0.0, 0.0], atol=1e-9)
+    # Without a cloud, or with the term off, the confidence is one everywhere.
+    assert yan.sample_confidence(trimesh.creation.box(), samples, params)[0].tolist() == [1.0] * 4
+    off = yan._merged({"confidence": "none"})
+    assert yan.sample_confidence(proxy, samples, off) == (pytest.approx(np.ones(4)), "none")
+
+
+@pytest.mark.parametrize(
+    "params, setting",
+    [
+        ({"confidence": "density"}, "confidence"),
+        ({"confidence_radius_m": 0.0}, "confidence_radius_m"),
+        ({"confidence_percentile": 0.0}, "confidence_percentile"),
+    ],
+)
+def test_bad_confidence_settings_are_refused(params, setting):
+    with pytest.raises(ValueError, match=setting):
+        yan._merged(params)

@@ -21,8 +21,10 @@ from omegaconf import OmegaConf
 
 from reconstruct.align import align_to_gnss, deregister_gnss_outliers, pose_errors
 from reconstruct.dense import (
+    RectifiedPair,
     View,
     consistent_depth,
+    disparity_search_range,
     fuse,
     normals_from_depth,
     pair_depth,
@@ -33,7 +35,7 @@ from reconstruct.dense import (
 from reconstruct.errors import ReconstructionError
 from reconstruct.flight import Flight, read_flight, simulate_gnss
 from reconstruct.pipeline import build_proxy, flight_content_key, proxy_flight_config, reconstruct_flight
-from reconstruct.proxy import degraded_ground_truth, poisson_proxy
+from reconstruct.proxy import degraded_ground_truth, oriented_cloud, poisson_proxy
 from reconstruct.sfm import map_reconstruction, sfm_options
 from scene.base import Box, MeshPart, Scene
 from scene.camera import Intrinsics, cam_from_world, look_at
@@ -229,6 +231,24 @@ def test_consistent_depth_keeps_agreeing_partners():
     assert np.isnan(out[0, 3])
     single = consistent_depth(depths[:1], min_consistent=2, rel_tol=0.01)  # one partner: it suffices
     assert single[0, 2] == pytest.approx(5.0)
+
+
+def test_disparity_window_holds_the_structure_when_the_span_exceeds_the_cap():
+    pair = RectifiedPair(np.eye(3), np.eye(3), np.diag([100.0, 100.0, 1.0]), np.eye(3), 2.0, (640, 480))
+    # f * B = 200 px m. A wall at 0.5-0.6 m (disparity 333-400 px) with 90 % of the points, ground
+    # running out to 2 m (100 px) and a far background at 20 m (10 px): the 2nd-98th percentile span,
+    # widened by 25 % each way, is ~80-500 px.
+    rng = np.random.default_rng(0)
+    wall = rng.uniform(0.5, 0.6, 900)
+    depth = np.concatenate([wall, rng.uniform(0.6, 2.0, 80), np.full(20, 20.0)])
+    lo, num = disparity_search_range(pair, depth, 1024)
+    assert 70 <= lo <= 80 and 400 * 1.25 <= lo + num <= 400 * 1.25 + 16
+    lo, num = disparity_search_range(pair, depth, 128)
+    assert num == 128
+    # The window holds the wall's disparities (not the far end's 8 + 128).
+    assert lo <= 200.0 / 0.6 and 200.0 / 0.5 <= lo + num
+    held = np.mean((200.0 / depth >= lo) & (200.0 / depth <= lo + num))
+    assert held >= 0.9
 
 
 def test_normals_from_depth_of_a_tilted_plane():
@@ -599,6 +619,31 @@ def test_poisson_proxy_of_a_sampled_box(tmp_path):
     on_box = on_box[on_box[:, 2] > 0.05]
     assert np.percentile(trimesh.proximity.closest_point(mesh, on_box)[1], 95) < 0.06
     assert np.percentile(trimesh.proximity.closest_point(world, mesh.vertices)[1], 95) < 0.06
+
+
+def test_oriented_cloud_is_cropped_downsampled_and_unit_length(tmp_path):
+    import open3d as o3d
+
+    # A 4 x 4 m plane sampled every 2 cm with normals of length 3, plus points outside the box.
+    ticks = np.arange(0.0, 4.0, 0.02)
+    x, y = np.meshgrid(ticks, ticks)
+    plane = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    outside = plane[:100] + [0.0, 0.0, 10.0]
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.vstack([plane, outside])))
+    cloud.normals = o3d.utility.Vector3dVector(np.tile([0.0, 0.0, 3.0], (len(plane) + 100, 1)))
+    path = tmp_path / "dense.ply"
+    o3d.io.write_point_cloud(str(path), cloud)
+    box = Box((-1.0, -1.0, -1.0), (5.0, 5.0, 1.0))
+    out = oriented_cloud(path, box, voxel_m=0.1)
+    assert 40 * 40 <= len(out["points"]) <= 41 * 41  # one point per 10 cm voxel of the 4 m square
+    assert np.all(out["points"][:, 2] == 0.0)
+    np.testing.assert_allclose(out["normals"], np.tile([0.0, 0.0, 1.0], (len(out["normals"]), 1)))
+    bare = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(plane))
+    o3d.io.write_point_cloud(str(tmp_path / "bare.ply"), bare)
+    assert (
+        len(oriented_cloud(tmp_path / "bare.ply", Box((-1.0, -1.0, -1.0), (5.0, 5.0, 1.0)), 0.1)["points"])
+        == 0
+    )
 
 
 def test_degraded_ground_truth_is_cropped_decimated_and_noised():
