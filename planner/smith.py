@@ -432,7 +432,11 @@ def optimise(
         chosen = _far_apart_views(objective.viewpoints[:, :3], budget, separation, rng)
         budget[chosen] -= 1
         objective.set_active(chosen, False)
-        pos, val, yaw, pitch = stepper.step(simplices[chosen])
+        # ``simplices[chosen]`` is a copy (fancy indexing): step it, then write it back, or every
+        # step would start again from the view's first tetrahedron.
+        stepped = simplices[chosen]
+        pos, val, yaw, pitch = stepper.step(stepped)
+        simplices[chosen] = stepped
         new_vps = objective.viewpoints[chosen].copy()
         gained = val < 0.0
         new_vps[gained, :3] = pos[gained]

@@ -195,3 +195,32 @@ def test_bad_settings_are_refused_by_name():
         smith._merged({"overlap_reference": "roof"})
     with pytest.raises(ValueError, match="target_gsd_m"):
         smith._merged({"target_gsd_m": 0.0})
+
+
+def test_views_far_above_a_wall_come_down_to_its_best_positions():
+    # One wall (its -x face, 20 m wide, 10 m tall) and three views 40 m up, 5 m in front of it: from
+    # there they see the wall at grazing incidence and 35-40 m away. Each view's value at a position
+    # is the gain of its best viewing direction there; the optimisation must bring the objective
+    # down and each view close to the best value an exhaustive search over positions finds.
+    wall = trimesh.creation.box(extents=(0.5, 20.0, 10.0))
+    wall.apply_translation((0.25, 0.0, 5.0))
+    points, normals = smith.sample_surface(wall, 2000, 0)
+    front = normals[:, 0] < -0.9
+    limits = VisibilityLimits(0.0, D_MAX, math.degrees(math.acos(0.087)))
+    model = VisibilityModel(wall, points[front], normals[front], CAMERA, limits)
+    start = np.array([look_at([-5.0, y, 40.0], [0.0, y, 5.0]).as_array() for y in (-6.0, 0.0, 6.0)])
+    objective = smith.SmithObjective(model, start, D_MAX)
+    initial = objective.objective()
+    params = smith._merged({"progress": False, "n_yaw": 64, "n_pitch": 23})
+    search = DirectionSearch(CAMERA, 64, 23, 3, 2.0)
+    smith.optimise(objective, search, params, np.array([0.0, 0.0, 5.0]), np.random.default_rng(0))
+    assert objective.objective() < 0.5 * initial
+    final = objective.viewpoints
+    assert np.all(final[:, 0] < -5.0) and np.all(final[:, 2] < 25.0)  # down in front of the wall
+    # The exhaustive search: the middle view's value on a 2.5 m grid, the other two where they ended.
+    objective.set_active(np.array([1]), False)
+    x, y, z = np.meshgrid(np.arange(-30.0, -4.0, 2.5), np.arange(-8.0, 8.1, 4.0), np.arange(5.0, 40.1, 2.5))
+    grid = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
+    best_on_grid = objective.position_gains(grid, search)[0].min()
+    reached = objective.position_gains(final[1:2, :3], search)[0][0]
+    assert reached <= 0.9 * best_on_grid  # values are negative: at least 90 % of the grid's best gain
