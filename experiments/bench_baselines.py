@@ -97,10 +97,12 @@ def main(argv=None) -> int:
             if "progress" in params:
                 params["progress"] = False
             module = importlib.import_module(f"planner.{planner_name}")
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             plan = module.plan(proxy, intrinsics, params, args.seed)
             seconds = time.perf_counter() - t0
             record = {"scene": scene_name, "planner": planner_name, **plan_record(plan, seconds)}
+            # CPU time of this process's threads: the machine is shared, wall time moves with it.
+            record["plan_cpu_s"] = round(time.process_time() - c0, 1)
             # The same forecast run.py records for every planner (issue "Planner ours"'s count).
             settings = EvaluationSettings.from_config(cfg.evaluate)
             target_distance = float(cfg.survey.target_gsd_m) * intrinsics.focal_px
@@ -116,7 +118,7 @@ def main(argv=None) -> int:
                 flush=True,
             )
     print(
-        "\nscene      planner    images  plan_s  objective initial -> final"
+        "\nscene      planner    images  plan_s   cpu_s  objective initial -> final"
         "   3 good views (%): walls roofs ground"
     )
     for r in records:
@@ -127,7 +129,8 @@ def main(argv=None) -> int:
             f"{r.get(f'predicted_well_observed_{c}_pct', float('nan')):5.1f}"
             for c in ("walls", "roofs", "ground")
         )
-        row = f"{r['scene']:10s} {r['planner']:9s} {r['n_images']:7d} {r['plan_time_s']:7.1f}"
+        row = f"{r['scene']:10s} {r['planner']:9s} {r['n_images']:7d}"
+        row += f" {r['plan_time_s']:7.1f} {r['plan_cpu_s']:7.1f}"
         print(f"{row}  {objective}                   {shares}")
     if args.json:
         write_json_atomic(args.json, records)

@@ -13,8 +13,9 @@
    views with probability proportional to their remaining budget (100 steps each), keeps those
    mutually farther apart than ``parallel_separation_m``, removes their observations, takes one
    Nelder-Mead step for all of them at once (vectorised: the steps' trial positions are evaluated
-   in batches) and puts their new observations back. A view whose best step gains nothing is moved
-   towards the scene centre and its simplex restarted. The loop ends when every budget is spent or
+   in batches) and puts their new observations back. A view whose best step gains nothing (or is
+   penalised) moves min_distance towards a point 0.9 d_max above the scene centre, is lifted until
+   clear, and its simplex restarted (``restart_positions``). The loop ends when every budget is spent or
    the objective improved by less than 1e-4 x h_target over the last ``convergence_window`` sweeps
    (a sweep: as many single-view steps as there are views).
 3. The views are ordered by a travelling-salesman path (``planner.trajectory``).
@@ -69,7 +70,6 @@ DEFAULTS = {
     "parallel_separation_m": None,
     "convergence_window": 10,
     "convergence_tol": 1e-4,
-    "restart_fraction": 0.25,
     "n_yaw": 128,
     "n_pitch": 45,
     "bin_subdivisions": 3,
@@ -84,8 +84,8 @@ DEFAULTS = {
 def _merged(params: Mapping | None) -> dict:
     merged = merge_params("smith", DEFAULTS, params)
     for key in ("front_overlap", "side_overlap"):
-        if not 0.0 <= float(merged[key]) < 1.0:
-            raise ValueError(f"smith: {key} must lie in [0, 1), got {merged[key]}")
+        if not 0.0 < float(merged[key]) < 1.0:
+            raise ValueError(f"smith: {key} must lie in (0, 1), got {merged[key]}")
     if not float(merged["max_distance_m"]) > float(merged["min_distance_m"]) >= 0.0:
         raise ValueError(
             f"smith: need 0 <= min_distance_m < max_distance_m, got {merged['min_distance_m']}, "
@@ -375,6 +375,33 @@ def _far_apart_views(positions: np.ndarray, budget: np.ndarray, separation: floa
     return np.asarray(chosen, dtype=np.intp)
 
 
+def restart_positions(
+    positions: np.ndarray,
+    scene_centre: np.ndarray,
+    d_max: float,
+    min_distance: float,
+    min_altitude: float,
+    model: VisibilityModel,
+    max_lifts: int = 1000,
+) -> np.ndarray:
+    """Where views that contribute nothing go next (the public code's rule), (K, 3) metres.
+
+    Each moves ``min_distance`` towards the point ``0.9 d_max`` above ``scene_centre`` (x, y), then
+    up by ``min_distance`` while it is closer than that to the proxy or below ``min_altitude``.
+    """
+    positions = np.asarray(positions, dtype=float).reshape(-1, 3)
+    target = np.array([scene_centre[0], scene_centre[1], 0.9 * float(d_max)])
+    step = target[None] - positions
+    length = np.linalg.norm(step, axis=1, keepdims=True)
+    moved = positions + np.where(length > 1e-9, step / np.maximum(length, 1e-9), 0.0) * min_distance
+    for _ in range(max_lifts):
+        blocked = (moved[:, 2] < min_altitude) | (model.clearance(moved) < min_distance)
+        if not blocked.any():
+            break
+        moved[blocked, 2] += min_distance
+    return moved
+
+
 def optimise(
     objective: SmithObjective,
     search: DirectionSearch,
@@ -399,7 +426,8 @@ def optimise(
         ]
     )
     separation = params["parallel_separation_m"]
-    separation = objective.d_max if separation is None else float(separation)
+    # The public code steps views together when their squared distance is >= 2 d_max^2.
+    separation = math.sqrt(2.0) * objective.d_max if separation is None else float(separation)
     counters = {"evaluations": 0, "penalised": 0}
 
     def evaluate(points: np.ndarray):
@@ -442,17 +470,20 @@ def optimise(
         new_vps[gained, :3] = pos[gained]
         new_vps[gained, 3] = np.mod(yaw[gained] + 180.0, 360.0) - 180.0
         new_vps[gained, 4] = pitch[gained]
-        # A valid position that gains nothing: the view contributes nothing. It is moved towards
-        # the scene centre (when that spot keeps the clearances) and restarted from a fresh simplex.
-        # Penalised steps (value > 0) leave the view where it is while its simplex moves on.
-        useless = val == 0.0
+        # A view whose best step gains nothing or is penalised contributes nothing where it is. As in
+        # the public code (optimize_trajectory.cu), it moves min_distance towards a point 0.9 d_max
+        # above the scene centre, is lifted by min_distance until it is clear of the proxy and the
+        # ground, and restarts from a fresh simplex.
+        useless = val >= 0.0
         if useless.any():
-            old = objective.viewpoints[chosen[useless], :3]
-            target = np.array(scene_centre, dtype=float)
-            moved = old + float(params["restart_fraction"]) * (target[None] - old)
-            moved[:, 2] = np.maximum(old[:, 2], min_alt)
-            safe = model.clearance(moved) >= min_dist
-            moved[~safe] = old[~safe]
+            moved = restart_positions(
+                objective.viewpoints[chosen[useless], :3],
+                scene_centre,
+                objective.d_max,
+                min_dist,
+                min_alt,
+                model,
+            )
             new_vps[useless, :3] = moved
             for j, p in zip(np.flatnonzero(useless), moved, strict=True):
                 simplices[chosen[j]] = initial_simplex(

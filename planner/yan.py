@@ -96,8 +96,9 @@ def _merged(params: Mapping | None) -> dict:
         raise ValueError(f"yan: target_distance_m must be > 0, got {merged['target_distance_m']}")
     if not 0.0 < float(merged["theta_t_deg"]) < 90.0:
         raise ValueError(f"yan: theta_t_deg must lie in (0, 90), got {merged['theta_t_deg']}")
-    if int(merged["min_observations"]) < 1 or int(merged["n_candidates"]) < 1:
-        raise ValueError("yan: min_observations and n_candidates must be >= 1")
+    for key in ("n_samples", "n_candidates", "min_observations"):
+        if int(merged[key]) < 1:
+            raise ValueError(f"yan: {key} must be >= 1, got {merged[key]}")
     if not float(merged["voxel_size_m"]) > 0.0:
         raise ValueError(f"yan: voxel_size_m must be > 0, got {merged['voxel_size_m']}")
     if merged["confidence"] not in CONFIDENCES:

@@ -187,6 +187,10 @@ def test_initial_grid_flies_at_the_target_gsd_with_the_overlap_on_the_reference(
 def test_bad_settings_are_refused_by_name():
     with pytest.raises(ValueError, match="front_overlap"):
         smith._merged({"front_overlap": 1.0})
+    with pytest.raises(ValueError, match="side_overlap"):
+        smith._merged({"side_overlap": 0.0})
+    with pytest.raises(ValueError, match="n_samples"):
+        smith._merged({"n_samples": 0})
     with pytest.raises(ValueError, match="min_distance_m"):
         smith._merged({"min_distance_m": 60.0})
     with pytest.raises(ValueError, match="unknown"):
@@ -224,3 +228,22 @@ def test_views_far_above_a_wall_come_down_to_its_best_positions():
     best_on_grid = objective.position_gains(grid, search)[0].min()
     reached = objective.position_gains(final[1:2, :3], search)[0][0]
     assert reached <= 0.9 * best_on_grid  # values are negative: at least 90 % of the grid's best gain
+
+
+def test_a_view_that_contributes_nothing_restarts_like_the_public_code():
+    building = trimesh.creation.box(extents=(10.0, 10.0, 10.0))
+    building.apply_translation((0.0, 0.0, 5.0))
+    model = VisibilityModel(
+        building, np.zeros((1, 3)), np.array([[0, 0, 1.0]]), CAMERA, VisibilityLimits(0, D_MAX, 85)
+    )
+    centre = np.array([0.0, 0.0, 5.0])
+    # In the open: min_distance (5 m) towards (0, 0, 0.9 d_max = 45 m).
+    far = smith.restart_positions(np.array([[-30.0, 0.0, 45.0]]), centre, D_MAX, 5.0, 5.0, model)
+    np.testing.assert_allclose(far, [[-25.0, 0.0, 45.0]], atol=1e-9)
+    # Moved next to the box's side (clearance < 5 m): lifted by 5 m until clear of its top.
+    side = smith.restart_positions(np.array([[-10.0, 0.0, 1.0]]), centre, D_MAX, 5.0, 5.0, model)
+    step = np.array([10.0, 0.0, 44.0]) / np.hypot(10.0, 44.0) * 5.0
+    first = np.array([-10.0, 0.0, 1.0]) + step
+    # x = -8.9 m, 3.9 m from the side: one lift leaves it 4.0 m from the top edge, two 7.1 m.
+    np.testing.assert_allclose(side, [first + [0.0, 0.0, 10.0]], atol=1e-6)
+    assert model.clearance(side)[0] >= 5.0

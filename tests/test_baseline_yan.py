@@ -139,6 +139,8 @@ def test_view_sampling_space_lies_in_the_distance_band():
         ({"d_min_ratio": 1.2}, "d_min_ratio"),
         ({"theta_t_deg": 95.0}, "theta_t_deg"),
         ({"n_sample": 5}, "unknown"),
+        ({"n_samples": 0}, "n_samples"),
+        ({"n_candidates": 0}, "n_candidates"),
     ],
 )
 def test_bad_settings_are_refused_by_name(params, setting):
