@@ -247,3 +247,34 @@ def test_a_view_that_contributes_nothing_restarts_like_the_public_code():
     # x = -8.9 m, 3.9 m from the side: one lift leaves it 4.0 m from the top edge, two 7.1 m.
     np.testing.assert_allclose(side, [first + [0.0, 0.0, 10.0]], atol=1e-6)
     assert model.clearance(side)[0] >= 5.0
+
+
+def test_incremental_updates_equal_a_fresh_objective():
+    # A box on the ground seen by 40 random views, with max_rays 6 so that samples overflow their
+    # kept rays: after removals, moves and re-additions the incrementally kept rays and h must equal
+    # those of an objective built from scratch on the final poses.
+    building = trimesh.creation.box(extents=(10.0, 8.0, 6.0))
+    building.apply_translation((0.0, 0.0, 3.0))
+    proxy = trimesh.util.concatenate([flat_ground(40.0), building])
+    points, normals = smith.sample_surface(proxy, 400, 0)
+    model = VisibilityModel(proxy, points, normals, CAMERA, VisibilityLimits(0.0, D_MAX, 85.0))
+    rng = np.random.default_rng(1)
+
+    def random_views(n):
+        eyes = np.column_stack([rng.uniform(-25, 25, n), rng.uniform(-25, 25, n), rng.uniform(8, 30, n)])
+        targets = rng.uniform(-4, 4, (n, 3)) + [0.0, 0.0, 3.0]
+        return np.array([look_at(e, t).as_array() for e, t in zip(eyes, targets, strict=True)])
+
+    objective = smith.SmithObjective(model, random_views(40), D_MAX, max_rays=6)
+    assert (objective.ray_valid.sum(axis=1) == 6).mean() > 0.3  # many samples overflow
+    for _ in range(15):
+        chosen = rng.choice(40, size=3, replace=False)
+        objective.set_active(chosen, False)
+        objective.move(chosen, random_views(3))
+    objective.set_active(np.array([5, 6]), False)
+    fresh = smith.SmithObjective(model, objective.viewpoints, D_MAX, max_rays=6)
+    fresh.set_active(np.array([5, 6]), False)
+    np.testing.assert_allclose(objective.h, fresh.h, rtol=1e-5, atol=1e-6)
+    assert objective.objective() == pytest.approx(fresh.objective(), rel=1e-6)
+    kept = [set(row[row >= 0].tolist()) for row in objective.ray_view]
+    assert kept == [set(row[row >= 0].tolist()) for row in fresh.ray_view]
