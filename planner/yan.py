@@ -64,7 +64,7 @@ DEFAULTS = {
     "quality_threshold": 0.5,
     "confidence": "poisson_gradient",
     "confidence_radius_m": 0.5,
-    "confidence_percentile": 95.0,
+    "confidence_percentile": 50.0,
     "min_score": 0.1,
     "min_observations": 2,
     "adjacency_m": 1.0,
@@ -192,8 +192,8 @@ def sample_confidence(proxy: trimesh.Trimesh, points: np.ndarray, params: Mappin
     """Confidence (P,) in [0, 1] of the samples and where it came from.
 
     ``poisson_gradient`` on the exploratory flight's cloud (``proxy.metadata[PROXY_CLOUD_KEY]``), divided by
-    its ``confidence_percentile`` over the samples and clipped at 1 (a few samples on densely
-    observed roofs would otherwise squeeze every other sample towards 0); ones when the setting is
+    its ``confidence_percentile`` over the samples and clipped at 1 (the median by default: a sample
+    supported as well as the scene's typical one is confident); ones when the setting is
     ``none`` or the proxy carries no cloud (a degraded ground truth).
     """
     cloud = proxy.metadata.get(PROXY_CLOUD_KEY) if params["confidence"] == "poisson_gradient" else None
