@@ -12,6 +12,10 @@ shared, so compare times within one run.
 
     python experiments/bench_baselines.py                          # tomb church cathedral x all
     python experiments/bench_baselines.py --scenes tomb --planners smith yan --json out.json
+    python experiments/bench_baselines.py --scenes tomb --planners yan --proxy cache/exploration/<key>
+
+``--proxy`` plans on a reconstructed proxy instead: an exploration cache entry of a run of that
+scene (``proxy_entry`` in its ``metrics.json``), with the exploratory cloud Yan's confidence reads.
 """
 
 from __future__ import annotations
@@ -67,11 +71,17 @@ def main(argv=None) -> int:
     parser.add_argument("--planners", nargs="+", default=list(PLANNERS), choices=PLANNERS)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, default=None, help="also write the records here")
+    parser.add_argument(
+        "--proxy", type=Path, default=None, help="exploration cache entry to plan on (one scene only)"
+    )
     args = parser.parse_args(argv)
+    if args.proxy is not None and len(args.scenes) != 1:
+        parser.error("--proxy is the proxy of one scene: give exactly one --scenes")
 
     from omegaconf import OmegaConf
 
     from evaluate.settings import EvaluationSettings
+    from experiments.exploration import load_proxy
     from experiments.observations import predicted_coverage
     from reconstruct.proxy import degraded_ground_truth
     from scene.camera import Intrinsics
@@ -83,7 +93,14 @@ def main(argv=None) -> int:
         base = compose(scene_name, args.planners[0])
         t0 = time.perf_counter()
         scene = load_scene(base.scene, cache_dir=base.cache_dir)
-        proxy = degraded_ground_truth(scene, base.reconstruct, args.seed)
+        if args.proxy is None:
+            proxy = degraded_ground_truth(scene, base.reconstruct, args.seed)
+        else:
+            try:
+                proxy = load_proxy(args.proxy)
+            except (FileNotFoundError, ValueError) as exc:
+                print(f"error: {exc}", file=sys.stderr)
+                return 2
         print(
             f"\n{scene_name}: structure {scene.structure_bounds.extent.round(1).tolist()} m, proxy "
             f"{len(proxy.faces)} faces, {proxy.area:.0f} m^2 "

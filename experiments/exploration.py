@@ -47,6 +47,23 @@ def exploration_cache_key(cfg: DictConfig, scene: Scene) -> str:
     )
 
 
+def load_proxy(entry: Path) -> trimesh.Trimesh:
+    """The proxy mesh of an exploration cache entry, carrying the exploratory flight's oriented cloud
+    (``proxy.metadata[PROXY_CLOUD_KEY]``, for planners that read the coarse model's points: Yan's
+    confidence term) when the entry holds its ``recon/dense.ply``."""
+    entry = Path(entry)
+    if not (entry / PROXY_FILE).is_file():
+        raise FileNotFoundError(f"{entry / PROXY_FILE}: no proxy (not an exploration cache entry)")
+    proxy = trimesh.load(entry / PROXY_FILE, force="mesh", process=False)
+    dense_ply = entry / "recon" / "dense.ply"
+    if dense_ply.is_file():
+        box = Box.from_points(proxy.vertices)
+        proxy.metadata[PROXY_CLOUD_KEY] = oriented_cloud(
+            dense_ply, box.expanded(1.0, 1.0, 1.0), CLOUD_VOXEL_M
+        )
+    return proxy
+
+
 def build_exploration_proxy(
     scene: Scene, intrinsics: Intrinsics, cfg: DictConfig
 ) -> tuple[trimesh.Trimesh, dict]:
@@ -87,14 +104,7 @@ def build_exploration_proxy(
         }
 
     entry, record = cached_entry(cfg.cache_dir, "exploration", exploration_cache_key(cfg, scene), build)
-    proxy = trimesh.load(entry / PROXY_FILE, force="mesh", process=False)
-    dense_ply = entry / "recon" / "dense.ply"
-    if dense_ply.is_file():
-        # The coarse model's own points, for planners that read them (Yan's confidence term).
-        box = Box.from_points(proxy.vertices)
-        proxy.metadata[PROXY_CLOUD_KEY] = oriented_cloud(
-            dense_ply, box.expanded(1.0, 1.0, 1.0), CLOUD_VOXEL_M
-        )
+    proxy = load_proxy(entry)
     # ``cached``/``proxy_cached`` say whether build_proxy reused its own work folder; a cache entry is
     # always built fresh, so they read false even on a hit. ``cache_hit`` is the field that tells.
     record = {k: v for k, v in record.items() if k not in WORKDIR_REUSE_FLAGS}
