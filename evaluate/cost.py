@@ -10,7 +10,9 @@ What is read (every file optional; a value whose source is missing is recorded a
 - ``recon/recon.json`` (the reconstruction's record): ``registered_fraction`` (or
   ``n_registered / n_images``), ``n_registered``, ``align_time_s`` (or the sum of
   ``extraction_time_s + matching_time_s + mapping_time_s``: the paper's alignment time) and
-  ``dense_time_s``; its ``n_images`` when there is no render record.
+  ``dense_time_s``, and the CPU seconds (process + children) of both, ``align_cpu_s`` and
+  ``dense_cpu_s`` (records from before they existed: None); its ``n_images`` when there is no
+  render record.
 """
 
 from __future__ import annotations
@@ -33,7 +35,9 @@ COST_KEYS = (
     "plan_time_s",
     "render_time_s",
     "align_time_s",
+    "align_cpu_s",
     "dense_time_s",
+    "dense_cpu_s",
 )
 ALIGN_PARTS = ("extraction_time_s", "matching_time_s", "mapping_time_s")
 
@@ -86,7 +90,8 @@ def collect_cost_metrics(run_dir: str | Path) -> dict:
     if out["align_time_s"] is None:
         parts = [_number(recon, key, recon_path) for key in ALIGN_PARTS]
         out["align_time_s"] = sum(parts) if all(p is not None for p in parts) else None
-    out["dense_time_s"] = _number(recon, "dense_time_s", recon_path)
+    for key in ("dense_time_s", "align_cpu_s", "dense_cpu_s"):
+        out[key] = _number(recon, key, recon_path)
 
     missing = [k for k, v in out.items() if v is None]
     if missing:

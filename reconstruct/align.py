@@ -103,6 +103,117 @@ def deregister_gnss_outliers(
     return dropped
 
 
+def merge_model(target: pycolmap.Reconstruction, source: pycolmap.Reconstruction) -> list[str]:
+    """Add the registered images of ``source`` that ``target`` lacks, with their 3-D points, to ``target``.
+
+    Both models must already be in the same (world) frame and come from one database (image, frame,
+    camera and rig ids agree). A point keeps only its observations in the added images (at least 2);
+    images both models hold stay as ``target`` has them. Returns the names of the added images.
+    """
+    added = []
+    for image_id in sorted(source.reg_image_ids()):
+        if target.exists_image(image_id):
+            continue
+        image = source.image(image_id)
+        source_frame = source.frame(image.frame_id)
+        if not target.exists_camera(image.camera_id):
+            target.add_camera(source.camera(image.camera_id))
+        if not target.exists_rig(source_frame.rig_id):
+            target.add_rig(source.rig(source_frame.rig_id))
+        frame = pycolmap.Frame()
+        frame.frame_id = source_frame.frame_id
+        frame.rig_id = source_frame.rig_id
+        for data_id in source_frame.data_ids:
+            frame.add_data_id(data_id)
+        frame.rig_from_world = source_frame.rig_from_world
+        target.add_frame(frame)
+        copy = pycolmap.Image(
+            name=image.name,
+            points2D=pycolmap.Point2DList([pycolmap.Point2D(p.xy) for p in image.points2D]),
+            camera_id=image.camera_id,
+            image_id=image_id,
+        )
+        copy.frame_id = image.frame_id
+        target.add_image(copy)
+        target.register_frame(frame.frame_id)
+        added.append(image.name)
+    added_ids = {target.find_image_with_name(name).image_id for name in added}
+    for point in source.points3D.values():
+        elements = [e for e in point.track.elements if e.image_id in added_ids]
+        if len(elements) < 2:
+            continue
+        track = pycolmap.Track()
+        for element in elements:
+            track.add_element(element.image_id, element.point2D_idx)
+        target.add_point3D(point.xyz, track, point.color)
+    return added
+
+
+def georeference_models(
+    models: list[pycolmap.Reconstruction],
+    names,
+    gnss_positions: np.ndarray,
+    gnss_sigma_m: float,
+    cfg: Mapping,
+    seed: int = 0,
+) -> tuple[pycolmap.Reconstruction, dict]:
+    """Align every model SfM found to its own GNSS positions and merge them into the largest.
+
+    The largest model must align (else ReconstructionError, as before merging existed). Another model
+    is merged when it holds at least ``merge_min_images`` registered images, its similarity fit
+    succeeds, and that many remain after the GNSS outlier check; otherwise it is dropped and
+    reported, never merged on a guess. Cameras farther than ``deregister_error_sigmas`` GNSS sigmas
+    (floored at ``min_error_m``) from their fix are de-registered in every model.
+
+    Returns:
+        The merged model (world frame) and a report: ``n_models``, ``n_models_merged``,
+        ``n_images_merged`` (registered images the merged models added), ``n_images_dropped``
+        (images registered only in dropped models), ``model_sizes`` ("215+32"), ``n_gnss_outliers``.
+    """
+    if not models:
+        raise ReconstructionError("no model to georeference", {"stage": "align"})
+    max_error = max(float(cfg["deregister_error_sigmas"]) * gnss_sigma_m, float(cfg["min_error_m"]))
+    min_images = max(int(cfg["merge_min_images"]), int(cfg["min_common_images"]), 3)
+    target = models[0]
+    align_to_gnss(target, names, gnss_positions, gnss_sigma_m, cfg, seed)
+    outliers = deregister_gnss_outliers(target, names, gnss_positions, max_error)
+    report = {
+        "n_models": len(models),
+        "n_models_merged": 0,
+        "n_images_merged": 0,
+        "n_images_dropped": 0,
+        "model_sizes": "+".join(str(m.num_reg_images()) for m in models),
+    }
+    dropped_names: set[str] = set()
+    for index, model in enumerate(models[1:], start=2):
+        size = model.num_reg_images()
+        model_names = {model.image(i).name for i in model.reg_image_ids()}
+        reason = None
+        if size < min_images:
+            reason = f"{size} images < align.merge_min_images {min_images}"
+        else:
+            try:
+                align_to_gnss(model, names, gnss_positions, gnss_sigma_m, cfg, seed)
+            except ReconstructionError as exc:
+                reason = f"alignment failed ({exc})"
+        if reason is None:
+            outliers += deregister_gnss_outliers(model, names, gnss_positions, max_error)
+            if model.num_reg_images() < min_images:
+                reason = f"{model.num_reg_images()} images left after the GNSS check"
+        if reason is not None:
+            log.info("model %d of %d (%d images) dropped: %s", index, len(models), size, reason)
+            dropped_names |= model_names
+            continue
+        added = merge_model(target, model)
+        report["n_models_merged"] += 1
+        report["n_images_merged"] += len(added)
+        log.info("model %d of %d merged: %d images added", index, len(models), len(added))
+    registered = {target.image(i).name for i in target.reg_image_ids()}
+    report["n_images_dropped"] = len(dropped_names - registered)
+    report["n_gnss_outliers"] = len(set(outliers) - registered)
+    return target, report
+
+
 def _apply_sim3d(sim: pycolmap.Sim3d, points: np.ndarray) -> np.ndarray:
     matrix = np.asarray(sim.matrix())
     return points @ matrix[:, :3].T + matrix[:, 3]

@@ -30,12 +30,13 @@ import numpy as np
 import pycolmap
 import trimesh
 
-from reconstruct.align import align_to_gnss, deregister_gnss_outliers, pose_errors
+from reconstruct.align import georeference_models, pose_errors
 from reconstruct.dense import dense_reconstruct
 from reconstruct.errors import ReconstructionError
 from reconstruct.flight import CAMERAS_FILE, Flight, read_flight, simulate_gnss
 from reconstruct.proxy import poisson_proxy
 from reconstruct.sfm import run_sfm
+from reconstruct.timing import stage_time
 from scene.base import Box
 from scene.io import write_atomic, write_json_atomic
 
@@ -204,37 +205,40 @@ def _reconstruct(
 ) -> dict:
     deterministic = bool(cfg["deterministic"])
     sfm = run_sfm(flight, out_dir, gnss, sigma, cfg["sfm"], seed, deterministic)
-    times = {f"{k}_time_s": v for k, v in sfm.times_s.items()}
-    record |= times | {
+    record |= {f"{k}_time_s": v for k, v in sfm.times_s.items()}
+    record |= {f"{k}_cpu_s": v for k, v in sfm.cpu_s.items()}
+    record |= {
         "align_time_s": sum(sfm.times_s.values()),
+        "align_cpu_s": sum(sfm.cpu_s.values()),
         "matching_method": sfm.matching_method,
-        "n_models": sfm.n_models,
         "database": str(out_dir / "database.db"),
     }
-    rec = sfm.reconstruction
-    n_reg = rec.num_reg_images()
-    fraction = n_reg / len(flight)
-    record |= {"n_registered": n_reg, "registered_fraction": fraction}
     min_fraction = float(cfg["min_registered_fraction"])
-    if fraction < min_fraction:
+    n_mapped = len({m.image(i).name for m in sfm.models for i in m.reg_image_ids()})
+    record |= {
+        "n_models": sfm.n_models,
+        "n_registered": n_mapped,
+        "registered_fraction": n_mapped / len(flight),
+    }
+    if n_mapped / len(flight) < min_fraction:
         raise ReconstructionError(
-            f"{flight.image_dir}: only {n_reg} of {len(flight)} images registered ({fraction:.1%} < "
-            f"reconstruct.min_registered_fraction {min_fraction:.0%})",
+            f"{flight.image_dir}: only {n_mapped} of {len(flight)} images registered in "
+            f"{sfm.n_models} model(s) ({n_mapped / len(flight):.1%} < reconstruct.min_registered_fraction "
+            f"{min_fraction:.0%})",
             {"stage": "mapping"},
         )
-    start = time.perf_counter()
-    align_to_gnss(rec, flight.names, gnss, sigma, cfg["align"], seed)
-    acfg = cfg["align"]
-    max_error = max(float(acfg["deregister_error_sigmas"]) * sigma, float(acfg["min_error_m"]))
-    dropped = deregister_gnss_outliers(rec, flight.names, gnss, max_error)
-    record["similarity_time_s"] = time.perf_counter() - start
-    record |= {"n_gnss_outliers": len(dropped), "n_registered_before_gnss_check": n_reg}
+    with stage_time() as clock:
+        rec, merge_report = georeference_models(sfm.models, flight.names, gnss, sigma, cfg["align"], seed)
+    record["similarity_time_s"] = clock.wall_s
+    record |= merge_report | {"n_registered_before_gnss_check": n_mapped}
     record |= pose_errors(rec, flight)
+    n_reg = record["n_registered"]
     if record["registered_fraction"] < min_fraction:
         raise ReconstructionError(
-            f"{flight.image_dir}: {len(dropped)} of {n_reg} registered cameras lie farther than "
-            f"{max_error:.2f} m from their GNSS fix; {record['n_registered']} of {len(flight)} remain "
-            f"({record['registered_fraction']:.1%} < reconstruct.min_registered_fraction {min_fraction:.0%})",
+            f"{flight.image_dir}: {n_reg} of {len(flight)} images registered after merging "
+            f"{merge_report['n_models_merged'] + 1} of {sfm.n_models} model(s) and de-registering "
+            f"{merge_report['n_gnss_outliers']} GNSS outliers ({record['registered_fraction']:.1%} < "
+            f"reconstruct.min_registered_fraction {min_fraction:.0%})",
             {"stage": "align"},
         )
     log.info(
@@ -250,10 +254,12 @@ def _reconstruct(
     record["sparse_dir"] = str(sparse_dir)
     record["n_sparse_points"] = int(rec.num_points3D())
 
-    dense = dense_reconstruct(sparse_dir, flight.image_dir, out_dir, cfg["dense"], deterministic)
+    with stage_time() as clock:
+        dense = dense_reconstruct(sparse_dir, flight.image_dir, out_dir, cfg["dense"], deterministic)
     record |= {
         "dense_backend": dense["backend"],
         "dense_time_s": dense["dense_time_s"],
+        "dense_cpu_s": clock.cpu_s,
         "n_depth_maps": dense["n_depth_maps"],
         "n_dense_points": dense["n_dense_points"],
     }

@@ -9,7 +9,6 @@ from __future__ import annotations
 import logging
 import shutil
 import tempfile
-import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,6 +18,7 @@ import pycolmap
 
 from reconstruct.errors import ReconstructionError
 from reconstruct.flight import Flight
+from reconstruct.timing import stage_time
 
 log = logging.getLogger(__name__)
 
@@ -45,12 +45,22 @@ class SfmOptions:
 
 @dataclass
 class SfmResult:
-    """The largest model SfM recovered (in its own arbitrary frame) and the stage wall times (s)."""
+    """Every model SfM recovered (each in its own arbitrary frame, largest first) and, per stage
+    (``extraction``, ``matching``, ``mapping``), its wall and CPU seconds."""
 
-    reconstruction: pycolmap.Reconstruction
+    models: list[pycolmap.Reconstruction]
     matching_method: str
     times_s: dict = field(default_factory=dict)
-    n_models: int = 0
+    cpu_s: dict = field(default_factory=dict)
+
+    @property
+    def reconstruction(self) -> pycolmap.Reconstruction:
+        """The model with most registered images."""
+        return self.models[0]
+
+    @property
+    def n_models(self) -> int:
+        return len(self.models)
 
 
 def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> SfmOptions:
@@ -222,9 +232,9 @@ def match_features(database_path: Path, n_images: int, options: SfmOptions) -> s
 
 def map_reconstruction(
     database_path: Path, image_dir: Path, options: SfmOptions
-) -> tuple[pycolmap.Reconstruction, int]:
-    """Run the mapper (incremental or global); return the model with most registered images and the
-    number of models found. Raise ReconstructionError when no model is found.
+) -> list[pycolmap.Reconstruction]:
+    """Run the mapper (incremental or global); return every model it found, most registered images
+    first. Raise ReconstructionError when no model is found.
     """
     log.info("mapping (%s)", options.mapping_method)
     with tempfile.TemporaryDirectory(prefix="mapper_", dir=Path(database_path).parent) as tmp:
@@ -237,8 +247,8 @@ def map_reconstruction(
             "the mapper found no model (no image pair could be initialised)",
             {"stage": "mapping", "n_registered": 0, "registered_fraction": 0.0},
         )
-    best = max(models.values(), key=lambda rec: rec.num_reg_images())
-    return best, len(models)
+    # Ties keep the mapper's order (its model index), so the choice does not depend on dict order.
+    return [models[k] for k in sorted(models, key=lambda k: (-models[k].num_reg_images(), k))]
 
 
 def run_sfm(
@@ -262,8 +272,8 @@ def run_sfm(
         deterministic: the same model, bit for bit, from the same inputs (see ``sfm_options``).
 
     Returns:
-        The largest model (arbitrary frame) and wall times in seconds of ``extraction``, ``matching``
-        and ``mapping``.
+        Every model (arbitrary frames, largest first) and the wall and CPU seconds of
+        ``extraction``, ``matching`` and ``mapping``.
     """
     options = sfm_options(cfg, seed, deterministic)
     pycolmap.set_random_seed(int(seed))
@@ -273,10 +283,11 @@ def run_sfm(
     for stale in (database_path, work_dir / "database.db-wal", work_dir / "database.db-shm"):
         stale.unlink(missing_ok=True)
     times: dict[str, float] = {}
+    cpu: dict[str, float] = {}
 
-    start = time.perf_counter()
-    keypoints = extract_features(database_path, flight, options)
-    times["extraction"] = time.perf_counter() - start
+    with stage_time() as clock:
+        keypoints = extract_features(database_path, flight, options)
+    times["extraction"], cpu["extraction"] = clock.wall_s, clock.cpu_s
     n_with_features = sum(1 for n in keypoints.values() if n > 0)
     log.info(
         "extraction: %.1f s, %d of %d images have features (median %d keypoints)",
@@ -298,20 +309,21 @@ def run_sfm(
         )
     write_pose_priors(database_path, flight.names, gnss_positions, gnss_sigma_m)
 
-    start = time.perf_counter()
-    method = match_features(database_path, len(flight), options)
-    times["matching"] = time.perf_counter() - start
-    log.info("matching: %.1f s", times["matching"])
+    with stage_time() as clock:
+        method = match_features(database_path, len(flight), options)
+    times["matching"], cpu["matching"] = clock.wall_s, clock.cpu_s
+    log.info("matching: %.1f s (%.1f s CPU)", times["matching"], cpu["matching"])
 
-    start = time.perf_counter()
-    reconstruction, n_models = map_reconstruction(database_path, flight.image_dir, options)
-    times["mapping"] = time.perf_counter() - start
+    with stage_time() as clock:
+        models = map_reconstruction(database_path, flight.image_dir, options)
+    times["mapping"], cpu["mapping"] = clock.wall_s, clock.cpu_s
     log.info(
-        "mapping: %.1f s, %d model(s), largest has %d of %d images",
+        "mapping: %.1f s (%.1f s CPU), %d model(s) of %s images (flight: %d)",
         times["mapping"],
-        n_models,
-        reconstruction.num_reg_images(),
+        cpu["mapping"],
+        len(models),
+        "+".join(str(m.num_reg_images()) for m in models),
         len(flight),
     )
     shutil.rmtree(work_dir / "mapper", ignore_errors=True)
-    return SfmResult(reconstruction, method, times, n_models)
+    return SfmResult(models, method, times, cpu)

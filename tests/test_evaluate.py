@@ -392,6 +392,8 @@ def test_collect_cost_metrics_from_a_run_directory(tmp_path):
         "matching_time_s": 2.0,
         "mapping_time_s": 3.0,
         "dense_time_s": 4.0,
+        "align_cpu_s": 11.0,
+        "dense_cpu_s": 7.5,
     }
     (tmp_path / "recon" / "recon.json").write_text(json.dumps(recon))
     cost = collect_cost_metrics(tmp_path)
@@ -400,6 +402,7 @@ def test_collect_cost_metrics_from_a_run_directory(tmp_path):
     assert cost["registered_fraction"] == pytest.approx(2 / 3)
     assert cost["align_time_s"] == pytest.approx(6.0)
     assert (cost["plan_time_s"], cost["render_time_s"], cost["dense_time_s"]) == (2.5, 1.5, 4.0)
+    assert (cost["align_cpu_s"], cost["dense_cpu_s"]) == (11.0, 7.5)
     assert collect_cost_metrics(tmp_path / "nothing") == dict.fromkeys(cost)
 
 

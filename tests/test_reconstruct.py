@@ -7,6 +7,7 @@ tests depend on nothing but numpy/OpenCV and the reconstruction package itself.
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import textwrap
@@ -37,6 +38,7 @@ from reconstruct.flight import Flight, read_flight, simulate_gnss
 from reconstruct.pipeline import build_proxy, flight_content_key, proxy_flight_config, reconstruct_flight
 from reconstruct.proxy import degraded_ground_truth, oriented_cloud, poisson_proxy
 from reconstruct.sfm import map_reconstruction, sfm_options
+from reconstruct.timing import stage_time
 from scene.base import Box, MeshPart, Scene
 from scene.camera import Intrinsics, cam_from_world, look_at
 
@@ -145,14 +147,19 @@ def ring_viewpoints(
 BOXES = [((-3.0, -2.0, 0.0), (3.0, 2.0, 3.0)), ((-1.0, -1.0, 3.0), (1.5, 1.0, 4.5))]
 
 
-def write_box_world_flight(image_dir: Path, viewpoints: np.ndarray, intr: Intrinsics, seed: int = 0) -> Path:
-    """Ray-cast the box world from ``viewpoints`` into ``image_dir`` in the renderer's format."""
+def write_box_world_flight(image_dir: Path, viewpoints: np.ndarray, intr: Intrinsics, seed=0) -> Path:
+    """Ray-cast the box world from ``viewpoints`` into ``image_dir`` in the renderer's format.
+
+    ``seed`` is the texture's seed, one for all views or one per view (views of different seeds
+    see differently painted worlds of the same shape and share no image content).
+    """
     image_dir.mkdir(parents=True, exist_ok=True)
-    texture = noise_texture(1024, seed)
+    seeds = np.broadcast_to(np.asarray(seed), (len(viewpoints),))
+    textures = {int(s): noise_texture(1024, int(s)) for s in np.unique(seeds)}
     images = []
     for i, vp in enumerate(viewpoints):
         rot, t = cam_from_world(vp)
-        gray = raycast_box_world(BOXES, texture, 0.02, rot, t, intr)
+        gray = raycast_box_world(BOXES, textures[int(seeds[i])], 0.02, rot, t, intr)
         name = f"{i:06d}.png"
         cv2.imwrite(str(image_dir / name), cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR))
         images.append(
@@ -406,7 +413,7 @@ def test_mapping_and_alignment_on_a_synthetic_dataset(tmp_path):
     cfg = reconstruct_cfg(**{"sfm.mapping.use_prior_position": False})
     for method in ("incremental", "global"):
         cfg.sfm.mapping.method = method
-        rec, _ = map_reconstruction(database_path, tmp_path, sfm_options(cfg.sfm, seed=0))
+        rec = map_reconstruction(database_path, tmp_path, sfm_options(cfg.sfm, seed=0))[0]
         align_to_gnss(rec, flight.names, gnss, sigma, cfg.align, seed=0)
         errors = pose_errors(rec, flight)
         assert errors["n_registered"] == 30, method
@@ -450,6 +457,13 @@ def test_reconstruct_flight_registers_aligns_and_densifies(box_reconstruction):
     assert record["align_time_s"] == pytest.approx(
         record["extraction_time_s"] + record["matching_time_s"] + record["mapping_time_s"]
     )
+    assert record["align_cpu_s"] == pytest.approx(
+        record["extraction_cpu_s"] + record["matching_cpu_s"] + record["mapping_cpu_s"]
+    )
+    # CPU time (process + children) is at most every core busy for the stage's wall time (plus the
+    # 10 ms clock tick), and SfM and dense keep more than one core busy part of the time.
+    for stage in ("extraction", "matching", "mapping", "dense"):
+        assert 0 < record[f"{stage}_cpu_s"] <= os.cpu_count() * record[f"{stage}_time_s"] + 0.02, stage
     for name in ("database.db", "sparse/images.bin", "dense.ply", "recon.json"):
         assert (out_dir / name).exists(), name
     # No temporary left behind (fusion's <ply>.vis sidecar used to stay under the temporary name).
@@ -465,6 +479,63 @@ def test_reconstruct_flight_registers_aligns_and_densifies(box_reconstruction):
     # 5 cm GNSS: 90 % of the fused points within 2 GSD of the true surface, half within 1 GSD.
     assert np.percentile(distance, 90) < 0.08
     assert np.median(distance) < 0.04
+
+
+def test_a_flight_split_in_two_models_is_georeferenced_and_merged(tmp_path):
+    """The ring of the box flight painted with one texture on one half and another on the other: the
+    halves share no content, so SfM finds two models; both are aligned to their own GNSS fixes and
+    merged before dense matching."""
+    intr = Intrinsics(320, 240, 60.0)
+    viewpoints = ring_viewpoints(32, 11.0, 7.0, [0.0, 0.0, 1.5], 0, 0.0)
+    flight = write_box_world_flight(tmp_path / "flight", viewpoints, intr, seed=np.repeat([3, 4], 16))
+    # RTK fixes of 2 cm: each half-ring's similarity comes from its own 16 fixes only.
+    cfg = reconstruct_cfg(**{"gnss.sigma_m": 0.02})
+    record = reconstruct_flight(flight, tmp_path / "recon", cfg, seed=0)
+    assert record["n_models"] == 2 and record["model_sizes"] == "16+16"
+    assert record["n_models_merged"] == 1 and record["n_images_merged"] == 16
+    assert record["n_images_dropped"] == 0
+    assert record["n_registered"] == 32
+    assert record["position_error_max_m"] < 0.05
+    merged = pycolmap.Reconstruction(record["sparse_dir"])
+    assert merged.num_reg_images() == 32
+    # Each half keeps its points, and their tracks still fit the moved cameras (reprojection < 1 px).
+    first_half = {f"{i:06d}.png" for i in range(16)}
+    halves = [merged.image(p.track.elements[0].image_id).name in first_half for p in merged.points3D.values()]
+    assert 300 < sum(halves) < len(halves) - 300
+    assert merged.compute_mean_reprojection_error() < 1.0
+    # Dense matching used both models: the box face only the first half sees (y = +2, ring angles
+    # 0-180 deg) and the one only the second half sees (y = -2) both get fused points within 1 GSD.
+    import open3d as o3d
+
+    dense = np.asarray(o3d.io.read_point_cloud(record["dense_ply"]).points)
+    on_face = (np.abs(dense[:, 0]) < 2.5) & (dense[:, 2] > 0.5) & (dense[:, 2] < 2.5)
+    for face_y in (2.0, -2.0):
+        assert (on_face & (np.abs(dense[:, 1] - face_y) < 0.04)).sum() > 1000, face_y
+    # With a merge threshold above 16 images the second model is dropped and counted, not merged.
+    dropped = reconstruct_flight(
+        flight,
+        tmp_path / "recon_dropped",
+        reconstruct_cfg(**{"gnss.sigma_m": 0.02, "align.merge_min_images": 17}),
+        seed=0,
+    )
+    assert dropped["n_models_merged"] == 0 and dropped["n_images_dropped"] == 16
+    assert dropped["n_registered"] == 16
+
+
+def test_stage_time_counts_threads_and_children():
+    """A child process busy for 0.4 s CPU and a numpy thread pool both count; the CPU time never
+    exceeds every core busy for the wall time."""
+    with stage_time() as clock:
+        subprocess.run(
+            [
+                sys.executable,
+                "-c",
+                "import time\nt = time.process_time()\nwhile time.process_time() < t + 0.4: pass",
+            ],
+            check=True,
+        )
+    assert clock.cpu_s >= 0.4
+    assert clock.cpu_s <= os.cpu_count() * clock.wall_s + 0.02
 
 
 def test_downsized_workspace_cameras_match_their_images(box_flight, box_reconstruction, tmp_path):
