@@ -97,18 +97,49 @@ def select_backend(requested: str) -> str:
 def prepare_workspace(sparse_dir: Path, image_dir: Path, workspace: Path, cfg: Mapping) -> Path:
     """Undistort the images of the sparse model into a fresh COLMAP dense workspace; return it.
 
-    Images are rescaled so their longest side is at most ``dense.max_image_size`` pixels.
+    Images are rescaled so their longest side is at most ``dense.max_image_size`` pixels. A model
+    whose cameras are all PINHOLE and no larger than that needs neither: its images are linked
+    into the workspace as they are (COLMAP's undistorter would decode and re-encode every one).
     """
     workspace = Path(workspace)
     shutil.rmtree(workspace, ignore_errors=True)
     workspace.parent.mkdir(parents=True, exist_ok=True)
+    max_size = int(cfg["max_image_size"])
+    rec = pycolmap.Reconstruction(sparse_dir)
+    if all(
+        cam.model == pycolmap.CameraModelId.PINHOLE and max(cam.width, cam.height) <= max_size
+        for cam in rec.cameras.values()
+    ):
+        _link_workspace(rec, Path(image_dir), workspace)
+        return workspace
     options = pycolmap.UndistortCameraOptions()
-    options.max_image_size = int(cfg["max_image_size"])
+    options.max_image_size = max_size
     pycolmap.undistort_images(
         workspace, sparse_dir, image_dir, output_type="COLMAP", undistort_options=options
     )
     _match_cameras_to_images(workspace)
     return workspace
+
+
+def _link_workspace(rec: pycolmap.Reconstruction, image_dir: Path, workspace: Path) -> None:
+    """The workspace ``undistort_images`` would write for an undistorted model at full size: images
+    hard-linked (copied across file systems), the model, and ``stereo/patch-match.cfg`` with
+    COLMAP's automatic choice of 20 source images per view."""
+    (workspace / "images").mkdir(parents=True)
+    names = sorted(rec.image(i).name for i in rec.reg_image_ids())
+    for name in names:
+        source, target = image_dir / name, workspace / "images" / name
+        target.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.link(source, target)
+        except OSError:
+            shutil.copyfile(source, target)
+    (workspace / "sparse").mkdir()
+    rec.write(workspace / "sparse")
+    stereo = workspace / "stereo"
+    for folder in ("depth_maps", "normal_maps", "consistency_graphs"):
+        (stereo / folder).mkdir(parents=True)
+    write_text_atomic(stereo / "patch-match.cfg", "".join(f"{n}\n__auto__, 20\n" for n in names))
 
 
 def _match_cameras_to_images(workspace: Path) -> None:

@@ -211,6 +211,7 @@ def _reconstruct(
         "align_time_s": sum(sfm.times_s.values()),
         "align_cpu_s": sum(sfm.cpu_s.values()),
         "matching_method": sfm.matching_method,
+        "n_image_pairs": sfm.n_image_pairs,
         "database": str(out_dir / "database.db"),
     }
     min_fraction = float(cfg["min_registered_fraction"])

@@ -19,10 +19,12 @@ import pycolmap
 from reconstruct.errors import ReconstructionError
 from reconstruct.flight import Flight
 from reconstruct.timing import stage_time
+from scene.io import write_text_atomic
 
 log = logging.getLogger(__name__)
 
-MATCHING_METHODS = ("auto", "exhaustive", "spatial", "sequential")
+MATCHING_METHODS = ("auto", "exhaustive", "spatial", "pose_prior", "sequential")
+PAIRS_FILE = "pairs.txt"
 MAPPING_METHODS = ("incremental", "global")
 
 
@@ -41,6 +43,9 @@ class SfmOptions:
     matching_method: str
     exhaustive_max_images: int
     mapping_method: str
+    pose_prior_max_neighbors: int = 30
+    pose_prior_max_distance_m: float = 0.0
+    pose_prior_max_axis_angle_deg: float = 75.0
 
 
 @dataclass
@@ -52,6 +57,7 @@ class SfmResult:
     matching_method: str
     times_s: dict = field(default_factory=dict)
     cpu_s: dict = field(default_factory=dict)
+    n_image_pairs: int = 0
 
     @property
     def reconstruction(self) -> pycolmap.Reconstruction:
@@ -145,6 +151,9 @@ def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> Sfm
         matching_method=matching_method,
         exhaustive_max_images=int(mcfg["exhaustive_max_images"]),
         mapping_method=mapping_method,
+        pose_prior_max_neighbors=int(mcfg["pose_prior_max_neighbors"]),
+        pose_prior_max_distance_m=float(mcfg["pose_prior_max_distance_m"]),
+        pose_prior_max_axis_angle_deg=float(mcfg["pose_prior_max_axis_angle_deg"]),
     )
 
 
@@ -206,12 +215,51 @@ def write_pose_priors(database_path: Path, names, positions: np.ndarray, sigma_m
     return count
 
 
-def match_features(database_path: Path, n_images: int, options: SfmOptions) -> str:
-    """Match features and verify the pairs geometrically; return the pairing method used.
+def pose_prior_pairs(
+    positions: np.ndarray,
+    axes: np.ndarray,
+    max_neighbors: int,
+    max_distance_m: float,
+    max_axis_angle_deg: float,
+) -> np.ndarray:
+    """Image pairs the survey's priors say can see the same surface, as (P, 2) index pairs i < j.
+
+    Each image pairs with its ``max_neighbors`` nearest images by prior position (metres) among
+    those whose optical axes (unit (N, 3), from the gimbal's attitude) differ by at most
+    ``max_axis_angle_deg`` and, with ``max_distance_m`` > 0, lie within that distance: spatial
+    pairing without the views back to back across a corner or a roof ridge, which share nothing.
+    """
+    positions, axes = np.asarray(positions, float), np.asarray(axes, float)
+    n = len(positions)
+    if n < 2:
+        return np.zeros((0, 2), int)
+    distance = np.linalg.norm(positions[:, None] - positions[None], axis=-1)
+    allowed = axes @ axes.T >= np.cos(np.radians(max_axis_angle_deg))
+    if max_distance_m > 0:
+        allowed &= distance <= max_distance_m
+    np.fill_diagonal(allowed, False)
+    ranked = np.where(allowed, distance, np.inf)
+    k = min(int(max_neighbors), n - 1)
+    nearest = np.argpartition(ranked, k - 1, axis=1)[:, :k]
+    rows = np.repeat(np.arange(n), k)
+    cols = nearest.ravel()
+    keep = np.isfinite(ranked[rows, cols])
+    pairs = np.sort(np.stack([rows[keep], cols[keep]], axis=1), axis=1)
+    return np.unique(pairs, axis=0)
+
+
+def match_features(
+    database_path: Path, flight: Flight, gnss_positions: np.ndarray, options: SfmOptions
+) -> tuple[str, int]:
+    """Match features and verify the pairs geometrically; return the pairing method used and the
+    number of image pairs matched.
 
     ``auto`` pairs exhaustively up to ``exhaustive_max_images`` images, then spatially (neighbours
-    by GNSS prior position, full 3-D distance).
+    by GNSS prior position, full 3-D distance). ``pose_prior`` pairs by GNSS position and the
+    camera's attitude (``pose_prior_pairs``; a survey drone logs its gimbal's attitude with every
+    photo, here the flight's attitude).
     """
+    n_images = len(flight)
     method = options.matching_method
     if method == "auto":
         method = "exhaustive" if n_images <= options.exhaustive_max_images else "spatial"
@@ -225,9 +273,24 @@ def match_features(database_path: Path, n_images: int, options: SfmOptions) -> s
         pycolmap.match_exhaustive(database_path, pairing_options=options.exhaustive, **common)
     elif method == "spatial":
         pycolmap.match_spatial(database_path, pairing_options=options.spatial, **common)
+    elif method == "pose_prior":
+        pairs = pose_prior_pairs(
+            gnss_positions,
+            flight.rotations[:, 2, :],  # optical axis in the world: third row of cam_from_world
+            options.pose_prior_max_neighbors,
+            options.pose_prior_max_distance_m,
+            options.pose_prior_max_axis_angle_deg,
+        )
+        pairs_file = Path(database_path).with_name(PAIRS_FILE)
+        write_text_atomic(pairs_file, "".join(f"{flight.names[i]} {flight.names[j]}\n" for i, j in pairs))
+        imported = pycolmap.ImportedPairingOptions()
+        imported.match_list_path = str(pairs_file)
+        pycolmap.match_image_pairs(database_path, pairing_options=imported, **common)
     else:
         pycolmap.match_sequential(database_path, pairing_options=options.sequential, **common)
-    return method
+    with pycolmap.Database.open(database_path) as db:
+        n_pairs = int(db.num_matched_image_pairs())
+    return method, n_pairs
 
 
 def map_reconstruction(
@@ -310,9 +373,9 @@ def run_sfm(
     write_pose_priors(database_path, flight.names, gnss_positions, gnss_sigma_m)
 
     with stage_time() as clock:
-        method = match_features(database_path, len(flight), options)
+        method, n_pairs = match_features(database_path, flight, gnss_positions, options)
     times["matching"], cpu["matching"] = clock.wall_s, clock.cpu_s
-    log.info("matching: %.1f s (%.1f s CPU)", times["matching"], cpu["matching"])
+    log.info("matching: %d pairs in %.1f s (%.1f s CPU)", n_pairs, times["matching"], cpu["matching"])
 
     with stage_time() as clock:
         models = map_reconstruction(database_path, flight.image_dir, options)
@@ -326,4 +389,4 @@ def run_sfm(
         len(flight),
     )
     shutil.rmtree(work_dir / "mapper", ignore_errors=True)
-    return SfmResult(models, method, times, cpu)
+    return SfmResult(models, method, times, cpu, n_pairs)

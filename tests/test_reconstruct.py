@@ -37,7 +37,7 @@ from reconstruct.errors import ReconstructionError
 from reconstruct.flight import Flight, read_flight, simulate_gnss
 from reconstruct.pipeline import build_proxy, flight_content_key, proxy_flight_config, reconstruct_flight
 from reconstruct.proxy import degraded_ground_truth, oriented_cloud, poisson_proxy
-from reconstruct.sfm import map_reconstruction, sfm_options
+from reconstruct.sfm import map_reconstruction, pose_prior_pairs, sfm_options
 from reconstruct.timing import stage_time
 from scene.base import Box, MeshPart, Scene
 from scene.camera import Intrinsics, cam_from_world, look_at
@@ -522,6 +522,31 @@ def test_a_flight_split_in_two_models_is_georeferenced_and_merged(tmp_path):
     assert dropped["n_registered"] == 16
 
 
+def test_pose_prior_pairs_skip_views_back_to_back():
+    """Four cameras facing +y and four facing -y at the same places on a line: with a 75 deg axis
+    limit only same-facing cameras pair (each with its 3 nearest), and a distance cut-off of 1.5 m
+    leaves only neighbours 1 m apart."""
+    positions = np.array([[x, 0.0, 10.0] for x in range(4)] * 2, float)
+    axes = np.array([[0.0, 1.0, 0.0]] * 4 + [[0.0, -1.0, 0.0]] * 4)
+    pairs = pose_prior_pairs(positions, axes, 3, 0.0, 75.0)
+    same_facing = {(i, j) for group in (range(4), range(4, 8)) for i in group for j in group if i < j}
+    assert {tuple(p) for p in pairs} == same_facing
+    near = pose_prior_pairs(positions, axes, 3, 1.5, 75.0)
+    assert {tuple(p) for p in near} == {(0, 1), (1, 2), (2, 3), (4, 5), (5, 6), (6, 7)}
+    # Without the axis limit, back-to-back cameras at the same place are each other's nearest.
+    assert {(0, 4), (3, 7)} <= {tuple(p) for p in pose_prior_pairs(positions, axes, 3, 0.0, 180.0)}
+
+
+def test_pose_prior_matching_registers_the_box_flight(box_flight, tmp_path):
+    cfg = reconstruct_cfg(**{"sfm.matching.method": "pose_prior", "sfm.matching.pose_prior_max_neighbors": 8})
+    record = reconstruct_flight(box_flight, tmp_path / "recon", cfg, seed=0)
+    assert record["matching_method"] == "pose_prior"
+    # 33 views, at most 8 neighbours each: fewer than the 528 exhaustive pairs, all registered.
+    assert 33 * 8 / 2 <= record["n_image_pairs"] <= 33 * 8
+    assert record["n_registered"] == 33
+    assert record["position_error_median_m"] < 0.05
+
+
 def test_stage_time_counts_threads_and_children():
     """A child process busy for 0.4 s CPU and a numpy thread pool both count; the CPU time never
     exceeds every core busy for the wall time."""
@@ -552,6 +577,37 @@ def test_downsized_workspace_cameras_match_their_images(box_flight, box_reconstr
         assert (camera.width, camera.height) == (width, height) == (200, 150)
         assert camera.params[0] == pytest.approx(focal_320 * 200 / 320, rel=1e-3)
         assert camera.params[2] == pytest.approx(100.0, abs=0.5)
+
+
+def test_full_size_pinhole_workspace_is_linked_and_equals_the_undistorters(
+    box_flight, box_reconstruction, tmp_path
+):
+    """PINHOLE images within max_image_size are linked, not re-encoded: same cameras, poses, stereo
+    config and pixels as COLMAP's undistorter writes (bar the border it blacks out)."""
+    _, record = box_reconstruction
+    sparse = Path(record["sparse_dir"])
+    linked = prepare_workspace(sparse, box_flight, tmp_path / "linked", {"max_image_size": 1024})
+    options = pycolmap.UndistortCameraOptions()
+    options.max_image_size = 1024
+    pycolmap.undistort_images(
+        tmp_path / "colmap", sparse, box_flight, output_type="COLMAP", undistort_options=options
+    )
+    ours, theirs = (pycolmap.Reconstruction(ws / "sparse") for ws in (linked, tmp_path / "colmap"))
+    assert ours.num_reg_images() == theirs.num_reg_images() == 33
+    for image_id in theirs.reg_image_ids():
+        a, b = ours.image(image_id), theirs.image(image_id)
+        assert a.name == b.name
+        np.testing.assert_allclose(a.cam_from_world().matrix(), b.cam_from_world().matrix(), atol=1e-12)
+        np.testing.assert_allclose(a.camera.params, b.camera.params)
+        assert (a.camera.width, a.camera.height) == (b.camera.width, b.camera.height)
+        assert (linked / "images" / a.name).stat().st_ino == (box_flight / a.name).stat().st_ino
+        mine, colmaps = (cv2.imread(str(ws / "images" / a.name)) for ws in (linked, tmp_path / "colmap"))
+        # The undistorter resamples to the same pixels but blacks out a thin border (about 1 %).
+        painted = colmaps.any(axis=-1)
+        assert painted.mean() > 0.97
+        assert np.array_equal(mine[painted], colmaps[painted])
+    config = "stereo/patch-match.cfg"
+    assert (linked / config).read_text().split() == (tmp_path / "colmap" / config).read_text().split()
 
 
 def test_reconstruct_flight_reuses_unchanged_outputs(box_flight, box_reconstruction):

@@ -1,0 +1,110 @@
+"""Dense stage before and after: one flight's aligned sparse model through variants of the dense
+settings, each timed (wall and CPU: process + children) and scored against the scene's ground truth.
+
+    python -m experiments.bench_dense study/default_v3/tomb/ours/seed0 --scene tomb \\
+        --variant default= --variant partners3=num_partners=3 \\
+        --variant small=max_image_size=768,num_partners=3
+
+A variant is ``NAME=KEY=VALUE,KEY=VALUE`` over ``conf/reconstruct/default.yaml``'s ``dense`` section
+(``NAME=`` alone: the defaults). Every variant starts from the same ``recon/sparse`` and
+``images/`` of the run directory and writes ``--out/<name>/dense.ply``; run it on an idle machine
+(one variant at a time, all cores) and quote the table it prints.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script from anywhere
+    sys.path.insert(0, str(ROOT))
+REPORTED = ("acc90_m", "comp_050", "comp_050_walls", "comp_050_roofs", "comp_050_ground")
+
+
+def parse_variant(text: str) -> tuple[str, list[str]]:
+    """``NAME=K=V,K=V`` -> (NAME, ["K=V", ...]); raises ValueError naming the bad part."""
+    name, sep, rest = text.partition("=")
+    if not sep or not name:
+        raise ValueError(f"--variant {text!r}: expected NAME=KEY=VALUE,... (NAME= for the defaults)")
+    overrides = [item for item in rest.split(",") if item]
+    bad = [item for item in overrides if "=" not in item]
+    if bad:
+        raise ValueError(f"--variant {name}: expected KEY=VALUE, got {bad}")
+    return name, overrides
+
+
+def run_variant(run_dir: Path, out_dir: Path, overrides: list[str], scene, eval_settings) -> dict:
+    """Dense reconstruction of ``run_dir``'s sparse model with ``overrides``; timings and metrics."""
+    from omegaconf import OmegaConf
+
+    from evaluate.run import evaluate_reconstruction
+    from reconstruct.dense import dense_reconstruct
+    from reconstruct.timing import stage_time
+
+    cfg = OmegaConf.load(ROOT / "conf" / "reconstruct" / "default.yaml").dense
+    unknown = [o.split("=")[0] for o in overrides if OmegaConf.select(cfg, o.split("=")[0]) is None]
+    if unknown:
+        raise ValueError(f"unknown dense settings {unknown}")
+    cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist(overrides))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with stage_time() as clock:
+        dense = dense_reconstruct(run_dir / "recon" / "sparse", run_dir / "images", out_dir, cfg)
+    record = {
+        "dense_time_s": clock.wall_s,
+        "dense_cpu_s": clock.cpu_s,
+        "n_depth_maps": dense["n_depth_maps"],
+        "n_dense_points": dense["n_dense_points"],
+    }
+    metrics = evaluate_reconstruction(dense["dense_path"], scene, eval_settings, out_dir / "eval")
+    return record | {key: metrics.get(key) for key in REPORTED}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run_dir", type=Path, help="a run directory with recon/sparse and images/")
+    parser.add_argument("--scene", required=True, help="its scene (conf/scene/<name>.yaml)")
+    parser.add_argument("--variant", action="append", required=True, help="NAME=KEY=VALUE,... (repeatable)")
+    parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "bench_dense")
+    args = parser.parse_args(argv)
+    try:
+        variants = [parse_variant(v) for v in args.variant]
+        for needed in ("recon/sparse", "images"):
+            if not (args.run_dir / needed).is_dir():
+                raise ValueError(f"{args.run_dir}: no {needed}/ (not a finished run directory)")
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    from evaluate.__main__ import load_scene_by_name, load_settings
+
+    scene = load_scene_by_name(args.scene)
+    settings = load_settings("default", [], no_vis=True)
+    header = f"{'variant':>14} {'wall s':>7} {'cpu s':>7} {'maps':>5} {'points':>9} " + " ".join(
+        f"{k:>15}" for k in REPORTED
+    )
+    print(f"{args.run_dir} ({args.scene}), {os.cpu_count()} cores\n{header}", flush=True)
+    rows = {}
+    for name, overrides in variants:
+        try:
+            record = run_variant(args.run_dir, args.out / name, overrides, scene, settings)
+        except ValueError as exc:
+            print(f"error: variant {name}: {exc}", file=sys.stderr)
+            return 2
+        rows[name] = record | {"overrides": overrides}
+        print(
+            f"{name:>14} {record['dense_time_s']:>7.1f} {record['dense_cpu_s']:>7.1f} "
+            f"{record['n_depth_maps']:>5d} {record['n_dense_points']:>9d} "
+            + " ".join(f"{record[k] if record[k] is not None else float('nan'):>15.4g}" for k in REPORTED),
+            flush=True,
+        )
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "bench_dense.json").write_text(json.dumps(rows, indent=1))
+    print(f"records: {args.out / 'bench_dense.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
