@@ -1,0 +1,98 @@
+"""SfM before and after: one rendered flight through variants of the SfM settings, each timed per
+stage (wall and CPU: process + children) and checked against the true poses.
+
+    python -m experiments.bench_sfm study/default_v3/tomb/ours/seed0/images \\
+        --variant spatial= --variant pose_prior=matching.method=pose_prior
+
+A variant is ``NAME=KEY=VALUE,...`` over ``conf/reconstruct/default.yaml``'s ``sfm`` section
+(``NAME=`` alone: the defaults). Each variant extracts, matches and maps the flight from scratch
+into ``--out/<name>``, aligns and merges its models to the simulated GNSS fixes (seed 0) as a cell
+does, and reports the registered images and camera errors. Run it on an idle machine and quote
+the table it prints.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script from anywhere
+    sys.path.insert(0, str(ROOT))
+
+from experiments.bench_dense import parse_variant  # noqa: E402
+
+STAGES = ("extraction", "matching", "mapping")
+
+
+def run_variant(image_dir: Path, out_dir: Path, overrides: list[str], seed: int = 0) -> dict:
+    """SfM, GNSS alignment and merging of the flight in ``image_dir`` with ``overrides``."""
+    from omegaconf import OmegaConf
+
+    from reconstruct.align import georeference_models, pose_errors
+    from reconstruct.flight import read_flight, simulate_gnss
+    from reconstruct.sfm import run_sfm
+
+    cfg = OmegaConf.load(ROOT / "conf" / "reconstruct" / "default.yaml")
+    unknown = [o.split("=")[0] for o in overrides if OmegaConf.select(cfg.sfm, o.split("=")[0]) is None]
+    if unknown:
+        raise ValueError(f"unknown sfm settings {unknown}")
+    sfm_cfg = OmegaConf.merge(cfg.sfm, OmegaConf.from_dotlist(overrides))
+    flight = read_flight(image_dir)
+    sigma = float(cfg.gnss.sigma_m)
+    gnss = simulate_gnss(flight.positions, sigma, seed)
+    sfm = run_sfm(flight, out_dir, gnss, sigma, sfm_cfg, seed)
+    model, merged = georeference_models(sfm.models, flight.names, gnss, sigma, cfg.align, seed)
+    record = {f"{s}_time_s": sfm.times_s[s] for s in STAGES} | {f"{s}_cpu_s": sfm.cpu_s[s] for s in STAGES}
+    record |= {"n_image_pairs": sfm.n_image_pairs, "model_sizes": merged["model_sizes"]}
+    return record | pose_errors(model, flight)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("image_dir", type=Path, help="a rendered flight (images + cameras.json)")
+    parser.add_argument("--variant", action="append", required=True, help="NAME=KEY=VALUE,... (repeatable)")
+    parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "bench_sfm")
+    args = parser.parse_args(argv)
+    try:
+        variants = [parse_variant(v) for v in args.variant]
+        if not (args.image_dir / "cameras.json").is_file():
+            raise ValueError(f"{args.image_dir}: no cameras.json (not a rendered flight)")
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    header = (
+        f"{'variant':>12} "
+        + " ".join(f"{s[:7] + ' s':>10} {'cpu':>6}" for s in STAGES)
+        + f" {'total s':>8} {'cpu':>7} {'pairs':>6} {'models':>9} {'reg':>5} {'pos med m':>9} {'p90 m':>6}"
+    )
+    print(f"{args.image_dir}, {os.cpu_count()} cores\n{header}", flush=True)
+    rows = {}
+    for name, overrides in variants:
+        try:
+            r = run_variant(args.image_dir, args.out / name, overrides)
+        except ValueError as exc:
+            print(f"error: variant {name}: {exc}", file=sys.stderr)
+            return 2
+        rows[name] = r | {"overrides": overrides}
+        wall = sum(r[f"{s}_time_s"] for s in STAGES)
+        cpu = sum(r[f"{s}_cpu_s"] for s in STAGES)
+        print(
+            f"{name:>12} "
+            + " ".join(f"{r[f'{s}_time_s']:>10.1f} {r[f'{s}_cpu_s']:>6.0f}" for s in STAGES)
+            + f" {wall:>8.1f} {cpu:>7.0f} {r['n_image_pairs']:>6d} {r['model_sizes']:>9}"
+            + f" {r['n_registered']:>5d}"
+            + f" {r['position_error_median_m']:>9.3f} {r['position_error_p90_m']:>6.3f}",
+            flush=True,
+        )
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "bench_sfm.json").write_text(json.dumps(rows, indent=1))
+    print(f"records: {args.out / 'bench_sfm.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
