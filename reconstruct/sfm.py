@@ -128,7 +128,9 @@ def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> Sfm
     incremental.mapper.abs_pose_refine_focal_length = bool(pcfg["refine_focal_length"])
     incremental.mapper.abs_pose_refine_extra_params = bool(pcfg["refine_extra_params"])
     incremental.use_prior_position = bool(pcfg["use_prior_position"])
-    incremental.use_robust_loss_on_prior_position = bool(pcfg["use_prior_position"])
+    incremental.use_robust_loss_on_prior_position = bool(pcfg["use_prior_position"]) and bool(
+        pcfg["robust_loss_on_prior_position"]
+    )
 
     global_ = pycolmap.GlobalPipelineOptions()
     global_.num_threads = mapper_threads

@@ -522,6 +522,16 @@ def test_a_flight_split_in_two_models_is_georeferenced_and_merged(tmp_path):
     assert dropped["n_registered"] == 16
 
 
+def test_prior_position_settings_reach_the_mapper():
+    options = sfm_options(reconstruct_cfg().sfm)
+    assert options.incremental.use_prior_position and options.incremental.use_robust_loss_on_prior_position
+    strict = sfm_options(reconstruct_cfg(**{"sfm.mapping.robust_loss_on_prior_position": False}).sfm)
+    assert strict.incremental.use_prior_position and not strict.incremental.use_robust_loss_on_prior_position
+    # No priors at all: no robust loss on them either.
+    none = sfm_options(reconstruct_cfg(**{"sfm.mapping.use_prior_position": False}).sfm)
+    assert not none.incremental.use_prior_position and not none.incremental.use_robust_loss_on_prior_position
+
+
 def test_pose_prior_pairs_skip_views_back_to_back():
     """Four cameras facing +y and four facing -y at the same places on a line: with a 75 deg axis
     limit only same-facing cameras pair (each with its 3 nearest), and a distance cut-off of 1.5 m
