@@ -166,8 +166,8 @@ def georeference_models(
     (floored at ``min_error_m``) from their fix are de-registered in every model.
 
     Returns:
-        The merged model (world frame) and a report: ``n_models``, ``n_models_merged``,
-        ``n_images_merged`` (registered images the merged models added), ``n_images_dropped``
+        The merged model (world frame) and a report: ``n_models``, ``n_models_merged`` (models that
+        added images), ``n_images_merged`` (registered images the merged models added), ``n_images_dropped``
         (images registered only in dropped models), ``model_sizes`` ("215+32"), ``n_gnss_outliers``.
     """
     if not models:
@@ -205,7 +205,8 @@ def georeference_models(
             dropped_names |= model_names
             continue
         added = merge_model(target, model)
-        report["n_models_merged"] += 1
+        # A model whose images the target already holds (COLMAP may rebuild a part twice) adds nothing.
+        report["n_models_merged"] += bool(added)
         report["n_images_merged"] += len(added)
         log.info("model %d of %d merged: %d images added", index, len(models), len(added))
     registered = {target.image(i).name for i in target.reg_image_ids()}
