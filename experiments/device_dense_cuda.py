@@ -61,23 +61,10 @@ def subset_model(rec, image_ids):
     points observed by at least two of them (tracks cut to them)."""
     import pycolmap
 
-    ids = set(image_ids)
+    from reconstruct.align import merge_model
+
     out = pycolmap.Reconstruction()
-    for camera_id in sorted({rec.image(i).camera_id for i in ids}):
-        out.add_camera_with_trivial_rig(rec.camera(camera_id))
-    for i in sorted(ids):
-        image = rec.image(i)
-        keypoints = np.array([p.xy for p in image.points2D]).reshape(-1, 2)
-        new = pycolmap.Image(name=image.name, keypoints=keypoints, camera_id=image.camera_id, image_id=i)
-        out.add_image_with_trivial_frame(new, image.cam_from_world())
-    for point in rec.points3D.values():
-        elements = [e for e in point.track.elements if e.image_id in ids]
-        if len({e.image_id for e in elements}) < 2:
-            continue
-        track = pycolmap.Track()
-        for e in elements:
-            track.add_element(e.image_id, e.point2D_idx)
-        out.add_point3D(point.xyz, track, point.color)
+    merge_model(out, rec, image_ids)
     return out
 
 

@@ -103,15 +103,19 @@ def deregister_gnss_outliers(
     return dropped
 
 
-def merge_model(target: pycolmap.Reconstruction, source: pycolmap.Reconstruction) -> list[str]:
-    """Add the registered images of ``source`` that ``target`` lacks, with their 3-D points, to ``target``.
+def merge_model(
+    target: pycolmap.Reconstruction, source: pycolmap.Reconstruction, image_ids=None
+) -> list[str]:
+    """Add the registered images of ``source`` (``image_ids`` of them, default all) that ``target``
+    lacks, with their 3-D points, to ``target``; into an empty ``target`` this cuts out a sub-model.
 
     Both models must already be in the same (world) frame and come from one database (image, frame,
-    camera and rig ids agree). A point keeps only its observations in the added images (at least 2);
-    images both models hold stay as ``target`` has them. Returns the names of the added images.
+    camera and rig ids agree). A point keeps only its observations in the added images (in at least
+    2 of them); images both models hold stay as ``target`` has them. Returns the added images' names.
     """
+    wanted = set(source.reg_image_ids()) if image_ids is None else set(image_ids)
     added = []
-    for image_id in sorted(source.reg_image_ids()):
+    for image_id in sorted(wanted):
         if target.exists_image(image_id):
             continue
         image = source.image(image_id)
@@ -140,7 +144,7 @@ def merge_model(target: pycolmap.Reconstruction, source: pycolmap.Reconstruction
     added_ids = {target.find_image_with_name(name).image_id for name in added}
     for point in source.points3D.values():
         elements = [e for e in point.track.elements if e.image_id in added_ids]
-        if len(elements) < 2:
+        if len({e.image_id for e in elements}) < 2:
             continue
         track = pycolmap.Track()
         for element in elements:

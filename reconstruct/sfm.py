@@ -43,9 +43,9 @@ class SfmOptions:
     matching_method: str
     exhaustive_max_images: int
     mapping_method: str
-    pose_prior_max_neighbors: int = 30
-    pose_prior_max_distance_m: float = 0.0
-    pose_prior_max_axis_angle_deg: float = 75.0
+    pose_prior_max_neighbors: int
+    pose_prior_max_distance_m: float
+    pose_prior_max_axis_angle_deg: float
 
 
 @dataclass

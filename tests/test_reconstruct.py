@@ -20,7 +20,7 @@ import pytest
 import trimesh
 from omegaconf import OmegaConf
 
-from reconstruct.align import align_to_gnss, deregister_gnss_outliers, pose_errors
+from reconstruct.align import align_to_gnss, deregister_gnss_outliers, merge_model, pose_errors
 from reconstruct.dense import (
     RectifiedPair,
     View,
@@ -421,6 +421,15 @@ def test_mapping_and_alignment_on_a_synthetic_dataset(tmp_path):
         # the truth than the GNSS positions themselves (the relative poses are exact).
         assert errors["position_error_median_m"] < 0.5 * gnss_error_median, method
         assert errors["rotation_error_max_deg"] < 0.5, method
+    # Ten of the cameras cut out as a model of their own: every point (seen by all 30) keeps its
+    # observations in those ten.
+    part = pycolmap.Reconstruction()
+    assert len(merge_model(part, rec, sorted(rec.reg_image_ids())[:10])) == 10
+    assert part.num_reg_images() == 10 and part.num_points3D() == rec.num_points3D()
+    assert part.compute_mean_track_length() == pytest.approx(10.0)
+    assert part.compute_mean_reprojection_error() == pytest.approx(
+        rec.compute_mean_reprojection_error(), abs=0.05
+    )
     # A camera 5 m from its GNSS fix (here: a gross fix) is de-registered; the others stay.
     moved = gnss.copy()
     moved[7] += [5.0, 0.0, 0.0]
