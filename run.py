@@ -11,46 +11,38 @@ images and GNSS-like noisy camera positions.
 
 from __future__ import annotations
 
-import importlib
 import logging
+import os
+import sys
 import time
 from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 log = logging.getLogger("run")
 
 
-class StageUnavailable(RuntimeError):
-    """A pipeline stage has no implementation yet: the run stops there instead of faking it."""
-
-
 class CellFailed(RuntimeError):
-    """The cell failed; metrics.json records the failure (Hydra reports it and exits non-zero)."""
-
-
-def stage(module: str, name: str):
-    """Import stage function ``module.name``, or raise StageUnavailable naming the missing stage."""
-    try:
-        return getattr(importlib.import_module(module), name)
-    except (ModuleNotFoundError, AttributeError) as exc:
-        raise StageUnavailable(f"stage {module}.{name} is not available: {exc}") from exc
+    """The cell failed; metrics.json records the failure (a sweep reports it and goes on)."""
 
 
 def obtain_proxy(scene, intrinsics, cfg: DictConfig, record: dict):
     """The proxy mesh the planners plan on, built once per scene and configuration (cached)."""
     source = cfg.reconstruct.proxy.source
     if source == "ground_truth_degraded":
-        degraded_ground_truth = stage("reconstruct.proxy", "degraded_ground_truth")
+        from reconstruct.proxy import degraded_ground_truth
+
         record["proxy_source"] = "ground_truth_degraded (NOT the paper's setting)"
         return degraded_ground_truth(scene, cfg.reconstruct, cfg.seed)
     if source != "reconstruction":
         raise ValueError(
             f"reconstruct.proxy.source must be 'reconstruction' or 'ground_truth_degraded', got {source!r}"
         )
-    build_exploration_proxy = stage("experiments.exploration", "build_exploration_proxy")
+    from experiments.exploration import build_exploration_proxy
+
     proxy, proxy_record = build_exploration_proxy(scene, intrinsics, cfg)
     record.update(
         {f"proxy_{k}": v for k, v in proxy_record.items() if isinstance(v, int | float | str | bool)}
@@ -73,10 +65,19 @@ def planner_params(cfg: DictConfig) -> DictConfig:
 
 def run_cell(cfg: DictConfig, run_dir: Path, record: dict) -> None:
     """Chain the stages for one (scene, planner, seed) cell; fill ``record`` as they complete."""
+    from evaluate.run import evaluate_reconstruction
+    from evaluate.settings import EvaluationSettings
+    from experiments.observations import predicted_coverage
+    from mission.flight_time import DroneSettings, flight_summary
+    from reconstruct.pipeline import reconstruct_flight
+    from render import render_flight
     from scene.camera import Intrinsics
+    from scene.plan import write_plan
+    from scene.registry import load_scene
 
     record["stage"] = "scene"
-    scene = stage("scene.registry", "load_scene")(cfg.scene, cache_dir=cfg.cache_dir)
+    drone = DroneSettings.from_config(OmegaConf.to_container(cfg.drone, resolve=True))
+    scene = load_scene(cfg.scene, cache_dir=cfg.cache_dir)
     intrinsics = Intrinsics(**cfg.camera)
 
     record["stage"] = "proxy"
@@ -84,43 +85,47 @@ def run_cell(cfg: DictConfig, run_dir: Path, record: dict) -> None:
 
     record["stage"] = "plan"
     plan_fn = hydra.utils.get_method(cfg.planner._target_)
-    write_plan = stage("planner.base", "write_plan")
     start = time.perf_counter()
     plan = plan_fn(proxy, intrinsics, planner_params(cfg), cfg.seed)
     record["plan_time_s"] = time.perf_counter() - start
-    predicted_coverage = stage("experiments.observations", "predicted_coverage")
-    settings = stage("evaluate.settings", "EvaluationSettings").from_config(cfg.evaluate)
+    settings = EvaluationSettings.from_config(cfg.evaluate)
     target_distance = float(cfg.survey.target_gsd_m) * intrinsics.focal_px
     forecast = predicted_coverage(proxy, plan.viewpoints, intrinsics, target_distance, settings)
     plan.info["predicted_coverage"] = {
         "criteria": ">= 3 planned views within 1.3 d_t and 60 deg of the normal (experiments.observations)",
         **forecast,
     }
+    flight = flight_summary(plan.viewpoints, drone)
+    plan.info.update(flight)
     record.update(forecast)
     write_plan(plan, run_dir / "plan")
-    record.update(n_viewpoints=len(plan.viewpoints), flight_length_m=plan.flight_length_m)
+    record.update(
+        n_viewpoints=len(plan.viewpoints),
+        flight_length_m=plan.flight_length_m,
+        flight_time_s=flight["flight_time_s"],
+        n_batteries=flight["n_batteries"],
+    )
     log.info(
-        "plan: %d viewpoints, %.0f m flight in %.1f s",
+        "plan: %d viewpoints, %.0f m flight (%.1f min, %d batteries) in %.1f s",
         len(plan.viewpoints),
         plan.flight_length_m,
+        flight["flight_time_s"] / 60.0,
+        flight["n_batteries"],
         record["plan_time_s"],
     )
 
     record["stage"] = "render"
-    render_flight = stage("render", "render_flight")
     rendered = render_flight(
         scene, plan.viewpoints, intrinsics, run_dir / "images", cfg.render, kinds=plan.kinds
     )
     record.update(n_images=len(plan.viewpoints), render_time_s=rendered.render_time_s)
 
     record["stage"] = "reconstruct"
-    reconstruct_flight = stage("reconstruct.pipeline", "reconstruct_flight")
     recon = reconstruct_flight(run_dir / "images", run_dir / "recon", cfg.reconstruct, cfg.seed)
     record.update({k: v for k, v in recon.items() if isinstance(v, int | float | str | bool)})
 
     record["stage"] = "evaluate"
-    evaluate_run = stage("evaluate.run", "evaluate_reconstruction")
-    record.update(evaluate_run(recon["dense_ply"], scene, cfg.evaluate, run_dir / "eval"))
+    record.update(evaluate_reconstruction(recon["dense_ply"], scene, cfg.evaluate, run_dir / "eval"))
     record["stage"] = "done"
 
 
@@ -135,8 +140,9 @@ def main(cfg: DictConfig) -> None:
         "status": "running",
     }
     log.info("run directory: %s", run_dir)
-    write_metrics = stage("evaluate.record", "write_metrics")
-    stage("evaluate.record", "code_revision")()  # before the stages import their code
+    from evaluate.record import code_revision, write_metrics
+
+    code_revision()  # before the stages import their code
     start = time.perf_counter()
     try:
         run_cell(cfg, run_dir, record)
@@ -147,7 +153,11 @@ def main(cfg: DictConfig) -> None:
         record.update(getattr(exc, "record", {}) or {})
         write_metrics(run_dir, record, cfg=OmegaConf.to_container(cfg, resolve=True))
         log.error("cell %s/%s failed in stage %s: %s", record["scene"], record["planner"], failed_stage, exc)
-        raise CellFailed(f"{failed_stage}: {exc}") from exc
+        if HydraConfig.get().mode == RunMode.MULTIRUN or os.environ.get("HYDRA_FULL_ERROR") == "1":
+            raise CellFailed(f"{failed_stage}: {exc}") from exc
+        # One run: the line above says it all; the traceback on request.
+        print("(the traceback: HYDRA_FULL_ERROR=1 python run.py ...)", file=sys.stderr)
+        sys.exit(1)
     record.pop("stage", None)
     record["status"] = "ok"
     record["cell_wall_time_s"] = time.perf_counter() - start  # proxy included unless it was cached

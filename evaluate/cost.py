@@ -4,7 +4,9 @@ What is read (every file optional; a value whose source is missing is recorded a
 
 - ``plan/viewpoints.csv``: ``n_viewpoints`` and ``flight_length_m`` (the polyline through the
   viewpoints in flight order, recomputed here so it cannot disagree with the flight flown).
-- ``plan/plan.json``: ``plan_time_s`` from ``plan_time_s``, else ``timings_s.total``, else ``time_s``.
+- ``plan/plan.json``: ``plan_time_s`` from ``plan_time_s``, else ``timings_s.total``, else ``time_s``;
+  ``flight_time_s`` and ``n_batteries`` (``mission.flight_time``), computed from the viewpoints with
+  the run's drone settings for plans written before they were recorded.
 - ``images/cameras.json`` (the renderer's record): ``n_images`` (its ``images`` list) and
   ``render_time_s``.
 - ``recon/recon.json`` (the reconstruction's record): ``registered_fraction`` (or
@@ -22,7 +24,7 @@ import logging
 from collections.abc import Mapping
 from pathlib import Path
 
-from planner.base import polyline_length, read_viewpoints
+from scene.plan import polyline_length, read_viewpoints
 
 log = logging.getLogger(__name__)
 
@@ -32,6 +34,8 @@ COST_KEYS = (
     "n_registered",
     "registered_fraction",
     "flight_length_m",
+    "flight_time_s",
+    "n_batteries",
     "plan_time_s",
     "render_time_s",
     "align_time_s",
@@ -57,12 +61,21 @@ def collect_cost_metrics(run_dir: str | Path) -> dict:
     out: dict = dict.fromkeys(COST_KEYS)
 
     viewpoints_csv = run_dir / "plan" / "viewpoints.csv"
+    viewpoints = None
     if viewpoints_csv.is_file():
         viewpoints, _ = read_viewpoints(viewpoints_csv)
         out["n_viewpoints"] = len(viewpoints)
         out["flight_length_m"] = polyline_length(viewpoints[:, :3])
 
     plan = _read_json(run_dir / "plan" / "plan.json")
+    out["flight_time_s"] = _number(plan, "flight_time_s", run_dir / "plan" / "plan.json")
+    out["n_batteries"] = _number(plan, "n_batteries", run_dir / "plan" / "plan.json")
+    if out["flight_time_s"] is None and viewpoints is not None:
+        from mission.export import run_settings
+        from mission.flight_time import flight_summary
+
+        flight = flight_summary(viewpoints, run_settings(run_dir)[1])
+        out["flight_time_s"], out["n_batteries"] = flight["flight_time_s"], flight["n_batteries"]
     timings = plan.get("timings_s") if isinstance(plan.get("timings_s"), Mapping) else {}
     out["plan_time_s"] = _number(plan, "plan_time_s", run_dir / "plan" / "plan.json")
     if out["plan_time_s"] is None:

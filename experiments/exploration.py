@@ -15,11 +15,11 @@ import trimesh
 from omegaconf import DictConfig, OmegaConf
 
 from experiments.cache import cache_key, cached_entry
-from planner.base import write_plan
 from planner.sampling import PROXY_CLOUD_KEY
 from reconstruct.proxy import oriented_cloud
 from scene.base import Box, Scene
 from scene.camera import Intrinsics
+from scene.plan import write_plan
 
 log = logging.getLogger(__name__)
 

@@ -46,9 +46,9 @@ from experiments.runs import (  # noqa: E402
     scene_name,
     scene_sort_key,
 )
-from planner.base import polyline_length  # noqa: E402
 from scene.camera import forward_vectors  # noqa: E402
 from scene.io import write_atomic  # noqa: E402
+from scene.plan import polyline_length  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -303,22 +303,32 @@ def plot_flight_paths_by_scene(flights: Sequence[tuple], title: str = "") -> Fig
     return fig
 
 
+COST_AXES = {
+    "n_images": ("number of images", 1.0),
+    "flight_time_s": ("flight time (min)", 1.0 / 60.0),
+}
+
+
 def plot_metrics_vs_images(
-    runs: pd.DataFrame, accuracy: str = "acc90_m", completeness: str = "comp_050"
+    runs: pd.DataFrame, accuracy: str = "acc90_m", completeness: str = "comp_050", cost: str = "n_images"
 ) -> Figure:
-    """Accuracy (top row) and completeness (bottom row) against image count; one column per scene.
+    """Accuracy (top row) and completeness (bottom row) against a cost; one column per scene.
 
     Args:
         runs: one row per run (``experiments.runs.runs_frame``); failed runs and runs without a
             finite value are left out.
         accuracy: accuracy column (metres), e.g. ``acc90_m``.
         completeness: completeness column (percent), e.g. ``comp_050``.
+        cost: the x axis, a key of ``COST_AXES``: ``n_images`` or ``flight_time_s`` (shown in minutes).
 
     Returns:
         The figure; ``axes[row][col]`` holds one scatter per planner (label = method name) whose
-        offsets are (n_images, value) of that planner's runs in seed order.
+        offsets are (cost, value) of that planner's runs in seed order.
     """
-    for column in ("n_images", accuracy, completeness):
+    if cost not in COST_AXES:
+        raise ValueError(f"cost must be one of {sorted(COST_AXES)}, got {cost!r}")
+    cost_label, cost_scale = COST_AXES[cost]
+    for column in (cost, accuracy, completeness):
         if column not in runs:
             raise ValueError(f"runs have no {column!r} column (metrics.json fields: {sorted(runs.columns)})")
     ok = runs[runs["status"] == "ok"]
@@ -335,7 +345,7 @@ def plot_metrics_vs_images(
             ax = axes[row][col]
             for i, planner in enumerate(planners):
                 cells = ok[(ok["scene"] == scene) & (ok["planner"] == planner)].sort_values("seed")
-                x = pd.to_numeric(cells["n_images"], errors="coerce").to_numpy(dtype=float)
+                x = pd.to_numeric(cells[cost], errors="coerce").to_numpy(dtype=float) * cost_scale
                 y = pd.to_numeric(cells[metric], errors="coerce").to_numpy(dtype=float)
                 finite = np.isfinite(x) & np.isfinite(y)
                 if not finite.any():
@@ -348,7 +358,7 @@ def plot_metrics_vs_images(
                     s=36,
                     label=method_name(planner),
                 )
-            ax.set_xlabel("number of images")
+            ax.set_xlabel(cost_label)
             ax.set_ylabel(label)
             ax.grid(alpha=0.3)
             if row == 0:
@@ -522,6 +532,7 @@ def make_figures(
         "errors": [],
         "coverage": [],
         "metrics_vs_images": [],
+        "metrics_vs_flight_time": [],
     }
     groups: dict[tuple[str, str], list[Run]] = {}
     for run in runs:
@@ -586,11 +597,12 @@ def make_figures(
                 log.info("%s: no evaluation images matching %s, no %s panel", scene, pattern, kind)
 
     frame = runs_frame(runs)
-    if {"n_images", accuracy, completeness} <= set(frame.columns):
-        fig = plot_metrics_vs_images(frame, accuracy, completeness)
-        written["metrics_vs_images"] += save_figure(fig, out_dir / "metrics_vs_images", dpi)
-    else:
-        log.warning("runs lack n_images/%s/%s: no metrics-vs-images figure", accuracy, completeness)
+    for cost, stem in (("n_images", "metrics_vs_images"), ("flight_time_s", "metrics_vs_flight_time")):
+        if {cost, accuracy, completeness} <= set(frame.columns):
+            fig = plot_metrics_vs_images(frame, accuracy, completeness, cost=cost)
+            written[stem] += save_figure(fig, out_dir / stem, dpi)
+        else:
+            log.warning("runs lack %s/%s/%s: no %s figure", cost, accuracy, completeness, stem)
     return written
 
 

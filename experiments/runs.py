@@ -236,7 +236,7 @@ def read_plan_record(run_dir: str | Path) -> dict:
 
 def read_run_viewpoints(run_dir: str | Path) -> tuple[np.ndarray, list[str]] | None:
     """The run's planned viewpoints ((V, 5) array in flight order, kinds), or None if it has no plan."""
-    from planner.base import read_viewpoints
+    from scene.plan import read_viewpoints
 
     path = Path(run_dir) / VIEWPOINTS_FILE
     if not path.is_file():

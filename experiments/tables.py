@@ -99,6 +99,11 @@ TABLE_I = (
 )
 TABLE_II = (
     MetricSpec("n_images", "Number of images", "Number of Images", 0, thousands=True),
+    # mission/flight_time.py with conf/drone: all flights, battery swaps excluded
+    MetricSpec(
+        "flight_time_s", "Flight time (minutes)", r"\makecell{Flight\\time (minutes)}", 1, scale=1.0 / 60.0
+    ),
+    MetricSpec("n_batteries", "Batteries", "Batteries", 0),
     MetricSpec(
         "align_time_s",
         "Alignment time (minutes)",

@@ -1,55 +1,18 @@
-"""What every planner returns and how a plan is written to and read from a run directory.
+"""The planner contract and the parameter merge every planner uses.
 
 Planner contract: a module ``planner/<name>.py`` exposes
 ``plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: int) -> Plan``;
-``conf/planner/<name>.yaml`` names it with ``_target_`` and carries its parameters.
+``conf/planner/<name>.yaml`` names it with ``_target_`` and carries its parameters. ``Plan`` and its
+files live in ``scene.plan`` (shared by every stage).
 """
 
 from __future__ import annotations
 
-import csv
-import io
 from collections.abc import Mapping
-from dataclasses import dataclass, field
-from pathlib import Path
 
-import numpy as np
+from scene.plan import Plan, PlanningError
 
-from scene.camera import VIEWPOINT_COLUMNS, validate_viewpoint_array
-from scene.io import write_json_atomic, write_text_atomic
-
-
-class PlanningError(RuntimeError):
-    """A planner could not produce a valid plan (the message names the violated constraint)."""
-
-
-@dataclass
-class Plan:
-    """An ordered flight.
-
-    Attributes:
-        viewpoints: (V, 5) array ``x, y, z, yaw_deg, pitch_deg`` in flight order (metres, degrees).
-        kinds: V labels (``detail``, ``coverage``, ``grid``, ``oblique``, ``nadir``, ...).
-        planner: planner name.
-        info: parameters, per-stage timings (s), viewpoint counts, objective history, flight length.
-    """
-
-    viewpoints: np.ndarray
-    kinds: list[str]
-    planner: str
-    info: dict = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        self.viewpoints = validate_viewpoint_array(self.viewpoints)
-        if len(self.kinds) != len(self.viewpoints):
-            raise ValueError(f"{len(self.kinds)} kinds for {len(self.viewpoints)} viewpoints")
-        if len(self.viewpoints) == 0:
-            raise PlanningError(f"planner {self.planner!r} produced no viewpoints")
-
-    @property
-    def flight_length_m(self) -> float:
-        """Length in metres of the polyline through the viewpoints in flight order."""
-        return polyline_length(self.viewpoints[:, :3])
+__all__ = ["Plan", "PlanningError", "merge_params"]
 
 
 def merge_params(planner: str, defaults: Mapping, params: Mapping | None) -> dict:
@@ -64,48 +27,3 @@ def merge_params(planner: str, defaults: Mapping, params: Mapping | None) -> dic
             raise ValueError(f"{planner}: unknown parameter(s) {unknown}; known: {sorted(defaults)}")
         merged.update({k: v for k, v in params.items() if k in defaults})
     return merged
-
-
-def polyline_length(positions) -> float:
-    """Length in metres of the polyline through ``positions`` (N, 3) in order."""
-    p = np.asarray(positions, dtype=float)
-    return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum()) if len(p) > 1 else 0.0
-
-
-def write_plan(plan: Plan, plan_dir: str | Path) -> Path:
-    """Write ``viewpoints.csv`` and ``plan.json`` into ``plan_dir`` atomically; return the dir."""
-    plan_dir = Path(plan_dir)
-    buf = io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(["index", *VIEWPOINT_COLUMNS, "kind"])
-    for i, (row, kind) in enumerate(zip(plan.viewpoints, plan.kinds, strict=True)):
-        writer.writerow([i, *(f"{v:.6f}" for v in row), kind])
-    write_text_atomic(plan_dir / "viewpoints.csv", buf.getvalue())
-    record = {
-        "planner": plan.planner,
-        "n_viewpoints": len(plan.viewpoints),
-        "flight_length_m": plan.flight_length_m,
-        "kinds": {k: plan.kinds.count(k) for k in sorted(set(plan.kinds))},
-        **plan.info,
-    }
-    write_json_atomic(plan_dir / "plan.json", record)
-    return plan_dir
-
-
-def read_viewpoints(csv_path: str | Path) -> tuple[np.ndarray, list[str]]:
-    """Read a ``viewpoints.csv``; return the (V, 5) array in file order and the kinds."""
-    csv_path = Path(csv_path)
-    if not csv_path.is_file():
-        raise FileNotFoundError(f"viewpoint file not found: {csv_path}")
-    with csv_path.open(newline="") as f:
-        reader = csv.DictReader(f)
-        missing = {"index", *VIEWPOINT_COLUMNS} - set(reader.fieldnames or [])
-        if missing:
-            raise ValueError(f"{csv_path}: missing columns {sorted(missing)}")
-        rows = list(reader)
-    try:
-        arr = np.array([[float(r[c]) for c in VIEWPOINT_COLUMNS] for r in rows], dtype=float)
-    except ValueError as exc:
-        raise ValueError(f"{csv_path}: {exc}") from exc
-    kinds = [r.get("kind") or "unknown" for r in rows]
-    return validate_viewpoint_array(arr.reshape(-1, 5)), kinds

@@ -20,9 +20,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from planner.base import PlanningError
 from planner.visibility import VisibilityModel
 from scene.camera import aim_at, validate_viewpoint_array
+from scene.plan import PlanningError
 
 
 @dataclass(frozen=True)

@@ -52,7 +52,7 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
-from planner.base import PlanningError
+from scene.plan import PlanningError
 
 # Smith et al. 2018 (see reference/baselines.md): triangulation and matchability penalties.
 SMITH_K1 = 32.0

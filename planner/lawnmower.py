@@ -27,9 +27,10 @@ import open3d as o3d
 import trimesh
 from scipy import ndimage
 
-from planner.base import Plan, PlanningError, merge_params
+from planner.base import merge_params
 from scene.base import Box
 from scene.camera import Intrinsics, yaw_pitch_from_direction
+from scene.plan import Plan, PlanningError
 
 DEFAULTS = {
     "mode": "centre",  # centre | nadir

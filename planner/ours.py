@@ -26,7 +26,6 @@ import trimesh
 from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
-from planner.base import Plan, PlanningError
 from planner.candidates import (
     CandidateSettings,
     FlightLimits,
@@ -43,6 +42,7 @@ from planner.sampling import sample_surface, validate_proxy
 from planner.trajectory import flight_length, order_viewpoints
 from planner.visibility import VisibilityLimits, VisibilityModel
 from scene.camera import Intrinsics
+from scene.plan import Plan, PlanningError
 
 
 def _yaml_defaults() -> dict:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from planner.base import PlanningError
+from scene.plan import PlanningError
 
 # ``proxy.metadata`` key of the exploratory flight's oriented cloud, {"points": (N, 3), "normals":
 # (N, 3)} in world metres, when the proxy was reconstructed (planners that read the coarse model's

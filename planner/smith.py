@@ -31,7 +31,7 @@ import numpy as np
 import trimesh
 from tqdm import tqdm
 
-from planner.base import Plan, PlanningError, merge_params
+from planner.base import merge_params
 from planner.lawnmower import footprint_m, grid_positions, structure_bounds_from_proxy
 from planner.sampling import sample_surface, validate_proxy
 from planner.smith_directions import DirectionSearch
@@ -49,6 +49,7 @@ from planner.trajectory import order_viewpoints
 from planner.visibility import VisibilityLimits, VisibilityModel
 from scene.base import Box
 from scene.camera import Intrinsics
+from scene.plan import Plan, PlanningError
 
 DEFAULTS = {
     "n_samples": 2048,

@@ -15,7 +15,7 @@ from __future__ import annotations
 import elkai
 import numpy as np
 
-from planner.base import PlanningError, polyline_length
+from scene.plan import PlanningError, polyline_length
 
 _MM_PER_M = 1000.0
 

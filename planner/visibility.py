@@ -22,9 +22,9 @@ import numpy as np
 import open3d as o3d
 import trimesh
 
-from planner.base import PlanningError
 from planner.sampling import validate_proxy
 from scene.camera import Intrinsics, forward_vectors, validate_viewpoint_array
+from scene.plan import PlanningError
 
 # Rows per chunk of the (V, P) geometry: bounds the float temporaries to ~ 64 MB at P = 2048.
 _ROW_CHUNK = 512

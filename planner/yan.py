@@ -41,11 +41,12 @@ import trimesh
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
-from planner.base import Plan, PlanningError, merge_params
+from planner.base import merge_params
 from planner.sampling import PROXY_CLOUD_KEY, sample_surface, validate_proxy
 from planner.trajectory import order_viewpoints
 from planner.visibility import VisibilityLimits, VisibilityModel
 from scene.camera import Intrinsics, aim_at
+from scene.plan import Plan, PlanningError
 
 DEFAULTS = {
     "n_samples": 4000,

@@ -28,9 +28,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="the scene seed (${seed} in scene configs)")
     args = parser.parse_args(argv)
 
-    from planner.base import read_viewpoints
     from render import render_flight
     from scene.camera import Intrinsics
+    from scene.plan import read_viewpoints
 
     try:
         viewpoints, kinds = read_viewpoints(args.viewpoints)

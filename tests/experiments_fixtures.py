@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from planner.base import Plan, write_plan
+from scene.plan import Plan, write_plan
 
 
 def write_run(

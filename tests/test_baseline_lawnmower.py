@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from planner.base import PlanningError
 from planner.lawnmower import plan, plan_exploration, structure_bounds_from_proxy
 from scene.base import Box
 from scene.camera import Intrinsics, project_points, world_from_cam_rotation
+from scene.plan import PlanningError
 
 CAMERA = Intrinsics(1024, 768, 60.0)
 TOMB_BOUNDS = Box((-20.0, -15.0, 0.0), (20.0, 15.0, 12.0))

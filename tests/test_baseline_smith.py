@@ -9,12 +9,12 @@ import pytest
 import trimesh
 
 from planner import smith
-from planner.base import read_viewpoints, write_plan
 from planner.smith_directions import DirectionSearch
 from planner.smith_heuristic import objective_terms, pair_terms, reconstructability
 from planner.visibility import VisibilityLimits, VisibilityModel
 from scene.base import Box
 from scene.camera import Intrinsics, forward_vectors, look_at, project_points
+from scene.plan import read_viewpoints, write_plan
 
 CAMERA = Intrinsics(1024, 768, 60.0)
 D_MAX = 50.0

@@ -9,9 +9,9 @@ import pytest
 import trimesh
 
 from planner import yan
-from planner.base import PlanningError, read_viewpoints, write_plan
 from planner.visibility import VisibilityLimits, VisibilityModel
 from scene.camera import Intrinsics, look_at
+from scene.plan import PlanningError, read_viewpoints, write_plan
 
 CAMERA = Intrinsics(1024, 768, 60.0)
 

@@ -31,9 +31,9 @@ from evaluate.record import write_metrics
 from evaluate.run import evaluate_reconstruction, format_region, parse_region
 from evaluate.settings import EvaluationSettings, threshold_key
 from evaluate.visualise import VIEW_NAMES, error_colors, save_view_png, splat, view_pixels
-from planner.base import Plan, write_plan
 from scene.base import Box
 from scene.camera import Intrinsics
+from scene.plan import Plan, write_plan
 
 ROOT = Path(__file__).resolve().parents[1]
 BIG_BOX = Box((-10.0, -10.0, -10.0), (10.0, 10.0, 10.0))

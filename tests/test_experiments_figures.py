@@ -86,6 +86,17 @@ def test_metrics_vs_images_scatter_equals_the_runs(tmp_path):
     np.testing.assert_allclose(church_comp["Yan et al."], [[3441, 59.39]])
 
 
+def test_metrics_vs_flight_time_shows_minutes(tmp_path):
+    write_run(tmp_path, "tomb", "ours", 0, n_images=291, flight_time_s=1500.0, acc90_m=0.19, comp_050=31.5)
+    write_run(tmp_path, "tomb", "yan", 0, n_images=900, flight_time_s=5400.0, acc90_m=0.31, comp_050=60.2)
+    fig = figures.plot_metrics_vs_images(runs_frame(load_runs([tmp_path])), cost="flight_time_s")
+    top, bottom = fig.axes[:2]
+    assert top.get_xlabel() == "flight time (min)"
+    offsets = {c.get_label(): c.get_offsets() for c in bottom.collections}
+    np.testing.assert_allclose(offsets["Ours"], [[25.0, 31.5]])
+    np.testing.assert_allclose(offsets["Yan et al."], [[90.0, 60.2]])
+
+
 def test_error_panel_shows_each_methods_images(tmp_path):
     images = {}
     for i, method in enumerate(["Smith et al.", "Ours"]):

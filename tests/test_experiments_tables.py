@@ -190,8 +190,8 @@ def test_markdown_and_latex_render_the_numbers(study):
     assert tex.count(r"\midrule") == 3  # one per scene
     t2 = tables.build_tables([study])["table2"]
     tex2 = tables.to_latex(t2, tables.TABLE_II, tables.TABLE_II_CAPTION, "tab:align_results")
-    # The paper's values have no CPU or dense time: n/a, never 0.
-    assert r"& Yan et al.~\cite{Yan2021} & 1 & 3,795 & 174.00 & n/a & n/a & n/a \\" in tex2
+    # The paper's values have no flight time, batteries, CPU or dense time: n/a, never 0.
+    assert r"& Yan et al.~\cite{Yan2021} & 1 & 3,795 & n/a & n/a & 174.00 & n/a & n/a & n/a \\" in tex2
     assert r"\textbf" not in tex2  # Table II has no "best"
 
 

@@ -66,6 +66,15 @@ def test_every_cell_scores_finite_numbers(smoke_sweep):
         for surface in ("ground", "roofs", "walls"):
             key = f"predicted_well_observed_{surface}_pct"
             assert 0.0 <= r[key] <= 100.0 and forecast[key] == r[key], key
+        # The flight-time model of the plan as flown (mission.flight_time), in plan.json and
+        # metrics.json alike; the plan exports to a mission with the same flights.
+        plan_record = json.loads((run_dir / "plan" / "plan.json").read_text())
+        assert r["flight_time_s"] == plan_record["flight_time_s"] > r["n_images"] * 1.5  # >= a photo each
+        assert r["n_batteries"] == plan_record["n_batteries"] == len(plan_record["flight_times_s"]) >= 1
+        from mission.__main__ import main as mission_main
+
+        assert mission_main([str(run_dir), "--format", "wpml", "--out", str(run_dir / "m.kmz")]) == 0
+        assert len(list(run_dir.glob("m*.kmz"))) == r["n_batteries"]
     by_planner = {r["planner"]: r for r in records}
     # ours plans close, frontal wall views; the lawnmower's grid does not.
     walls = "predicted_well_observed_walls_pct"

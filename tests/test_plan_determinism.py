@@ -8,9 +8,9 @@ import hydra
 import pytest
 from hydra import compose, initialize_config_dir
 
-from planner.base import write_plan
 from run import planner_params
 from scene.camera import Intrinsics
+from scene.plan import write_plan
 from tests.planner_scenes import box_building
 
 CONF = Path(__file__).resolve().parents[1] / "conf"

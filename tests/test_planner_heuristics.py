@@ -8,7 +8,6 @@ import math
 import numpy as np
 import pytest
 
-from planner.base import PlanningError
 from planner.heuristics import (
     HeuristicParams,
     angular_spread,
@@ -28,6 +27,7 @@ from planner.heuristics import (
 )
 from planner.objective import ObjectiveState
 from planner.visibility import Observations
+from scene.plan import PlanningError
 
 PARAMS = HeuristicParams(  # Eq. 1-5 as printed: the hand-computed values below
     k_count=3,

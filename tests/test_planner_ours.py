@@ -10,7 +10,6 @@ import pytest
 import trimesh
 import yaml
 
-from planner.base import PlanningError
 from planner.candidates import CandidateSettings, FlightLimits, detail_group
 from planner.cmaes_refine import CmaSettings, refine_clusters, spatial_clusters
 from planner.culling import cull
@@ -20,6 +19,7 @@ from planner.ours import DEFAULTS, _add_viewpoints, plan
 from planner.sampling import sample_surface
 from planner.visibility import VisibilityLimits, VisibilityModel
 from scene.camera import Intrinsics, forward_vectors
+from scene.plan import PlanningError
 from tests.planner_scenes import box_building
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -220,7 +220,7 @@ def test_bad_input_names_the_constraint():
 def test_plan_writes_and_reads_back(small_plan, tmp_path):
     import json
 
-    from planner.base import read_viewpoints, write_plan
+    from scene.plan import read_viewpoints, write_plan
 
     _, result = small_plan
     write_plan(result, tmp_path / "plan")

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from planner.base import PlanningError
 from planner.sampling import sample_surface
 from planner.visibility import VisibilityCache, VisibilityLimits, VisibilityModel
 from scene.camera import Intrinsics, project_points
+from scene.plan import PlanningError
 from tests.planner_scenes import box_building
 
 INTRINSICS = Intrinsics(320, 240, 60.0)

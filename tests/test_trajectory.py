@@ -7,8 +7,8 @@ import itertools
 import numpy as np
 import pytest
 
-from planner.base import PlanningError, polyline_length
 from planner.trajectory import flight_length, order_viewpoints
+from scene.plan import PlanningError, polyline_length
 
 
 def _best(points, start, return_home):

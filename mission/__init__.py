@@ -1,0 +1,1 @@
+"""Flyable missions: geo-reference a plan, time it, and export it for QGroundControl, Litchi and DJI."""
