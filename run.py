@@ -69,6 +69,7 @@ def run_cell(cfg: DictConfig, run_dir: Path, record: dict) -> None:
     from evaluate.settings import EvaluationSettings
     from experiments.observations import predicted_coverage
     from mission.flight_time import DroneSettings, flight_summary
+    from mission.validate import validate_plan
     from reconstruct.pipeline import reconstruct_flight
     from render import render_flight
     from scene.camera import Intrinsics
@@ -88,6 +89,7 @@ def run_cell(cfg: DictConfig, run_dir: Path, record: dict) -> None:
     start = time.perf_counter()
     plan = plan_fn(proxy, intrinsics, planner_params(cfg), cfg.seed)
     record["plan_time_s"] = time.perf_counter() - start
+    validate_plan(plan, proxy, drone)  # whoever made it: nothing unflyable is rendered
     settings = EvaluationSettings.from_config(cfg.evaluate)
     target_distance = float(cfg.survey.target_gsd_m) * intrinsics.focal_px
     forecast = predicted_coverage(proxy, plan.viewpoints, intrinsics, target_distance, settings)
@@ -155,8 +157,12 @@ def main(cfg: DictConfig) -> None:
         log.error("cell %s/%s failed in stage %s: %s", record["scene"], record["planner"], failed_stage, exc)
         if HydraConfig.get().mode == RunMode.MULTIRUN or os.environ.get("HYDRA_FULL_ERROR") == "1":
             raise CellFailed(f"{failed_stage}: {exc}") from exc
-        # One run: the line above says it all; the traceback on request.
-        print("(the traceback: HYDRA_FULL_ERROR=1 python run.py ...)", file=sys.stderr)
+        # One run: one line on stderr, the traceback on request.
+        print(
+            f"error: cell {record['scene']}/{record['planner']} failed in stage {failed_stage}: {exc} "
+            "(traceback: HYDRA_FULL_ERROR=1)",
+            file=sys.stderr,
+        )
         sys.exit(1)
     record.pop("stage", None)
     record["status"] = "ok"

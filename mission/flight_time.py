@@ -37,6 +37,7 @@ class DroneSettings:
     gimbal_pitch_min_deg: float
     gimbal_pitch_max_deg: float
     min_height_m: float
+    min_clearance_m: float
     ceiling_m: float
     cruise_speed_m_s: float
     acceleration_m_s2: float
@@ -68,7 +69,7 @@ class DroneSettings:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise MissionError(f"drone.{name} must be a positive number, got {value!r}")
-        for name in ("photo_time_s", "takeoff_s", "landing_s", "min_height_m"):
+        for name in ("photo_time_s", "takeoff_s", "landing_s", "min_height_m", "min_clearance_m"):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
                 raise MissionError(f"drone.{name} must be a number >= 0, got {value!r}")

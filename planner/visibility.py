@@ -24,6 +24,7 @@ import trimesh
 
 from planner.sampling import validate_proxy
 from scene.camera import Intrinsics, forward_vectors, validate_viewpoint_array
+from scene.enclosure import ENCLOSED_BACK_FRACTION, GRID_DIRECTIONS, enclosed_positions, raycasting_scene
 from scene.plan import PlanningError
 
 # Rows per chunk of the (V, P) geometry: bounds the float temporaries to ~ 64 MB at P = 2048.
@@ -112,14 +113,6 @@ class Observations:
         )
 
 
-# enclosed(): share of rays that must leave an interior (a camera in a doorway still sees out).
-ENCLOSED_BACK_FRACTION = 0.75
-_GRID = np.array(
-    [(x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1) if (x, y, z) != (0, 0, 0)]
-)
-_GRID_DIRECTIONS = (_GRID / np.linalg.norm(_GRID, axis=1, keepdims=True)).astype(np.float32)
-
-
 class VisibilityModel:
     """Visibility of fixed surface samples of a proxy mesh from arbitrary viewpoints.
 
@@ -167,13 +160,7 @@ class VisibilityModel:
         self.limits = limits
         self.ray_offset_m = float(ray_offset_m)
         self.image_margin_px = float(image_margin_px)
-        if _scene is None:
-            _scene = o3d.t.geometry.RaycastingScene()
-            _scene.add_triangles(
-                o3d.core.Tensor(np.ascontiguousarray(proxy.vertices, dtype=np.float32)),
-                o3d.core.Tensor(np.ascontiguousarray(proxy.faces, dtype=np.uint32)),
-            )
-        self._scene = _scene
+        self._scene = raycasting_scene(proxy) if _scene is None else _scene
         self._ray_origins = (self.points + self.ray_offset_m * self.normals).astype(np.float32)
         self.rays_cast = 0
 
@@ -308,26 +295,10 @@ class VisibilityModel:
     def enclosed(
         self, positions: np.ndarray, min_back_fraction: float = ENCLOSED_BACK_FRACTION
     ) -> np.ndarray:
-        """(N,) bool: positions (N, 3) inside a closed part of the proxy.
-
-        From each position rays leave along the 26 directions of a 3 x 3 x 3 grid; a position is
-        enclosed when at least ``min_back_fraction`` of them first hit the proxy from behind (the
-        ray runs along the hit face's outward normal: it left an interior). A camera under an eave
-        or in a courtyard sees open sky or outer faces along most rays; one inside a hall does not.
-        """
+        """(N,) bool: positions (N, 3) inside a closed part of the proxy (``scene.enclosure``)."""
         q = np.asarray(positions, dtype=np.float32).reshape(-1, 3)
-        if len(q) == 0:
-            return np.zeros(0, bool)
-        dirs = _GRID_DIRECTIONS
-        rays = np.concatenate([np.repeat(q, len(dirs), axis=0), np.tile(dirs, (len(q), 1))], axis=1).astype(
-            np.float32
-        )
-        self.rays_cast += len(rays)
-        hits = self._scene.cast_rays(o3d.core.Tensor(rays))
-        hit = np.isfinite(hits["t_hit"].numpy())
-        normals = hits["primitive_normals"].numpy()
-        back = hit & (np.einsum("ij,ij->i", normals, rays[:, 3:]) > 0)
-        return back.reshape(len(q), len(dirs)).mean(axis=1) >= float(min_back_fraction)
+        self.rays_cast += len(q) * len(GRID_DIRECTIONS)
+        return enclosed_positions(self._scene, q, min_back_fraction)
 
     def clearance(self, positions: np.ndarray) -> np.ndarray:
         """(N,) distance in metres from each position (N, 3) to the nearest proxy surface."""

@@ -6,6 +6,8 @@ scoring, at small sizes (a few minutes on 2 cores).
 
 import json
 import math
+import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -20,17 +22,26 @@ ROOT = Path(__file__).resolve().parents[1]
 def smoke_sweep(tmp_path_factory):
     base = tmp_path_factory.mktemp("smoke")
     sweep_dir, cache_dir = base / "multirun", base / "cache"
+    # The README's example planner, from a package and a config directory outside the repository.
+    outside = base / "my_planners"
+    (outside / "conf" / "planner").mkdir(parents=True)
+    shutil.copy(ROOT / "examples" / "orbit_planner.py", outside / "orbit_planner.py")
+    shutil.copy(
+        ROOT / "examples" / "conf" / "planner" / "orbit.yaml", outside / "conf" / "planner" / "orbit.yaml"
+    )
     cmd = [
         sys.executable,
         "run.py",
         "-m",
         "experiment=smoke",
         "scene=tomb",
-        "planner=lawnmower,ours",
+        "planner=lawnmower,ours,orbit",
+        f"hydra.searchpath=[file://{outside / 'conf'}]",
         f"hydra.sweep.dir={sweep_dir}",
         f"cache_dir={cache_dir}",
     ]
-    out = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=1500)
+    env = {**os.environ, "PYTHONPATH": str(outside)}
+    out = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=1800, env=env)
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
     return sweep_dir, cache_dir
 
@@ -38,7 +49,7 @@ def smoke_sweep(tmp_path_factory):
 def test_every_cell_scores_finite_numbers(smoke_sweep):
     sweep_dir, _ = smoke_sweep
     records = [json.loads(p.read_text()) for p in sorted(sweep_dir.rglob("metrics.json"))]
-    assert sorted(r["planner"] for r in records) == ["lawnmower", "ours"]
+    assert sorted(r["planner"] for r in records) == ["lawnmower", "orbit", "ours"]
     for r in records:
         assert r["status"] == "ok", r.get("error")
         assert r["scene"] == "tomb" and r["experiment"] == "smoke"
@@ -84,7 +95,7 @@ def test_every_cell_scores_finite_numbers(smoke_sweep):
 def test_proxy_is_built_once_per_scene(smoke_sweep):
     sweep_dir, cache_dir = smoke_sweep
     records = [json.loads(p.read_text()) for p in sorted(sweep_dir.rglob("metrics.json"))]
-    assert sorted(r["proxy_cache_hit"] for r in records) == [False, True]
+    assert sorted(r["proxy_cache_hit"] for r in records) == [False, True, True]
     # only cache_hit tells a hit; the build's own work-folder reuse flags would read false on both
     assert not any({"proxy_cached", "proxy_proxy_cached"} & r.keys() for r in records)
     assert len({r["proxy_entry"] for r in records}) == 1
@@ -106,7 +117,8 @@ def test_tables_from_the_sweep(smoke_sweep, tmp_path):
             assert (tmp_path / f"{name}.{ext}").is_file()
     records = {r["planner"]: r for r in (json.loads(p.read_text()) for p in sweep_dir.rglob("metrics.json"))}
     table1 = pd.read_csv(tmp_path / "table1.csv")
-    assert sorted(set(table1["planner"])) == ["lawnmower", "ours"]
+    assert sorted(set(table1["planner"])) == ["lawnmower", "orbit", "ours"]
+    assert "| Orbit |" in (tmp_path / "tables.md").read_text()  # a planner from outside, in the tables
     for row in table1.itertuples():
         assert row.mean == pytest.approx(records[row.planner][row.metric], rel=1e-9)
     table2 = pd.read_csv(tmp_path / "table2.csv").set_index(["planner", "metric"])
