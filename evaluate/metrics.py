@@ -21,6 +21,10 @@ Definitions (distances in metres, percentages in 0-100):
   ``ground_height_m``), ``roofs`` (facing up, above it), ``walls`` (facing sideways) and
   ``undersides`` (facing down: eaves, arches). ``gt_share_{class}`` is the class's % of the samples,
   ``comp_{t}_{class}`` the completeness over its samples (null for a class without samples).
+- Enclosed surface (``exclude_enclosed``): a sample that no straight ray from it reaches the open
+  along (buried faces, sealed interiors; ``scene.enclosure.exposed_samples``) is left out of every
+  completeness figure and counted in ``n_gt_samples_enclosed`` and ``gt_enclosed_pct[_{class}]``
+  (% of all samples, of the class's samples); ``n_gt_samples`` counts the scored ones.
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ from evaluate.geometry import SurfaceDistance, clip_mesh_to_box, sample_surface,
 from evaluate.loading import load_reconstruction
 from evaluate.settings import EvaluationSettings, percentile_key, threshold_key
 from scene.base import Box
+from scene.enclosure import exposed_samples, raycasting_scene
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +76,7 @@ class ScoreDetails:
         points_in_region: (M, 3) scored reconstruction points (m), in Z-order (not file order).
         accuracy_distances: (M,) their distance to the in-region ground-truth surface (m).
         gt_region_mesh: the ground truth cut to the region (the surface scored against).
-        gt_samples: (S, 3) ground-truth surface samples (m), in Z-order.
+        gt_samples: (S, 3) scored (exposed) ground-truth surface samples (m), in Z-order.
         completeness_distances: (S,) distance from each sample to the nearest scored point (m);
             ``inf`` beyond ``distance_cap_m``.
     """
@@ -184,6 +189,19 @@ def score_details(
             f"the ground truth inside {region.as_dict()} ({region_mesh.area:.3g} m^2) gets no sample at "
             f"{settings.gt_sample_density_per_m2} samples/m^2"
         )
+    exposure_start = time.perf_counter()
+    exposed = (
+        exposed_samples(raycasting_scene(gt_mesh), samples, sample_normals)
+        if settings.exclude_enclosed
+        else np.ones(len(samples), bool)
+    )
+    enclosed_record = _enclosed_record(exposed, sample_class)
+    enclosed_record["eval_exposure_time_s"] = time.perf_counter() - exposure_start
+    if not exposed.any():
+        raise ValueError(
+            f"no ground-truth sample inside {region.as_dict()} can be seen from outside the model"
+        )
+    samples, sample_class = samples[exposed], sample_class[exposed]
 
     n_scored = len(scored)
     record = {
@@ -195,7 +213,8 @@ def score_details(
         if n_points > n_nonfinite
         else None,
         "gt_area_m2": float(region_mesh.area),
-        "n_gt_samples": len(samples),
+        "n_gt_samples": len(samples),  # the scored (exposed) ones
+        **enclosed_record,
         "gt_sample_density_per_m2": settings.gt_sample_density_per_m2,
         "gt_sample_seed": settings.gt_sample_seed,
         "distance_cap_m": settings.distance_cap_m,
@@ -231,6 +250,19 @@ def score_details(
 
 
 SURFACE_CLASSES = ("ground", "roofs", "walls", "undersides")
+
+
+def _enclosed_record(exposed: np.ndarray, sample_class: np.ndarray) -> dict:
+    """Counts of the samples no exterior line of sight reaches, overall and per surface class (%)."""
+    record = {
+        "n_gt_samples_enclosed": int(np.count_nonzero(~exposed)),
+        "gt_enclosed_pct": 100.0 * np.count_nonzero(~exposed) / len(exposed),
+    }
+    for index, name in enumerate(SURFACE_CLASSES):
+        in_class = sample_class == index
+        share = 100.0 * np.count_nonzero(~exposed & in_class) / in_class.sum() if in_class.any() else None
+        record[f"gt_enclosed_pct_{name}"] = share
+    return record
 
 
 def surface_classes(

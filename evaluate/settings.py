@@ -84,6 +84,8 @@ class EvaluationSettings:
             roof (completeness per surface class).
         facing_normal_z: a triangle faces up when its normal's z is at least this, down when at most
             minus this, sideways otherwise (0.5: slopes up to 60 degrees are roofs).
+        exclude_enclosed: score completeness only over ground-truth samples some exterior line of
+            sight reaches (``scene.enclosure.exposed_samples``); enclosed ones are counted apart.
         visualise: the error pictures.
     """
 
@@ -99,6 +101,7 @@ class EvaluationSettings:
     export_gt_mesh: bool = True
     ground_height_m: float = 0.25
     facing_normal_z: float = 0.5
+    exclude_enclosed: bool = True
     visualise: VisualisationSettings = field(default_factory=VisualisationSettings)
 
     def __post_init__(self) -> None:

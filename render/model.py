@@ -267,6 +267,8 @@ def build_model(scene: Scene, intrinsics: Intrinsics, cfg: Mapping) -> BuiltMode
         geom.type = mujoco.mjtGeom.mjGEOM_MESH
         geom.meshname = mesh.name
         geom.material = material
+        if part.tint is not None:  # a geom colour other than MuJoCo's default replaces the material's
+            geom.rgba = [*part.tint, 1.0]
         # Render-only geometry: no collisions, hence no convex hulls to compute.
         geom.contype = 0
         geom.conaffinity = 0

@@ -78,6 +78,7 @@ class MeshPart:
             right, v up: v = 0 is the bottom row of the texture image (OBJ/trimesh convention).
         texture: key into ``Scene.textures`` for ``uv``, or None.
         vertex_colors: (N, 3) uint8 RGB, used when there is no texture, or None.
+        tint: RGB (each 0-1) multiplying the texture (a grey material in the part's colour), or None.
     """
 
     name: str
@@ -86,6 +87,7 @@ class MeshPart:
     uv: np.ndarray | None = None
     texture: str | None = None
     vertex_colors: np.ndarray | None = None
+    tint: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
         self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64)
@@ -106,6 +108,8 @@ class MeshPart:
             raise ValueError(f"part {self.name!r}: uv and texture go together")
         if self.vertex_colors is not None:
             self.vertex_colors = np.ascontiguousarray(self.vertex_colors, dtype=np.uint8)
+        if self.tint is not None and (len(self.tint) != 3 or not all(0.0 <= c <= 1.0 for c in self.tint)):
+            raise ValueError(f"part {self.name!r}: tint must be three values in [0, 1], got {self.tint}")
 
 
 @dataclass
@@ -162,6 +166,8 @@ class Scene:
         digest.update(self.name.encode())
         for part in self.parts:
             digest.update(repr((part.name, part.texture)).encode())
+            if part.tint is not None:  # only then: procedural scenes keep their fingerprints
+                digest.update(repr(part.tint).encode())
             for array in (part.vertices, part.faces, part.uv, part.vertex_colors):
                 if array is not None:
                     digest.update(repr(array.shape).encode())

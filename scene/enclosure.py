@@ -51,3 +51,77 @@ def enclosed_positions(
     normals = hits["primitive_normals"].numpy()
     back = hit & (np.einsum("ij,ij->i", normals, rays[:, 3:]) > 0)
     return back.reshape(len(q), len(dirs)).mean(axis=1) >= float(min_back_fraction)
+
+
+def sphere_directions(n: int) -> np.ndarray:
+    """(n, 3) unit directions spread evenly over the sphere (Fibonacci lattice), a fixed order."""
+    i = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
+    phi = np.pi * (1.0 + 5.0**0.5) * i
+    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z]).astype(np.float32)
+
+
+# exposed_samples(): first-hop rays per sample (over its half-space; a wall sample under an eave
+# sees out along rays slightly below its tangent plane, hence the negative cosine), the start
+# offset off the surface, and the free length a ray must run before its midpoint may serve as a
+# camera position (a drone needs room).
+EXPOSURE_DIRECTIONS = 48
+EXPOSURE_MIN_COS = -0.1
+EXPOSURE_OFFSET_M = 0.01
+EXPOSURE_FREE_M = 2.0
+# From a free midpoint the open is looked for along the grid directions that do not point down
+# (the sky and the horizon; the ground is below).
+OPEN_DIRECTIONS = GRID_DIRECTIONS[GRID_DIRECTIONS[:, 2] >= 0]
+
+
+def exposed_samples(
+    scene: o3d.t.geometry.RaycastingScene,
+    points: np.ndarray,
+    normals: np.ndarray,
+    n_directions: int = EXPOSURE_DIRECTIONS,
+) -> np.ndarray:
+    """(N,) bool: surface samples that a camera in the open could see.
+
+    A sample is exposed when a ray from it (started ``EXPOSURE_OFFSET_M`` off the surface along its
+    normal; along the normal first, then ``n_directions`` fixed directions of its half-space) either
+    leaves the scene without hitting anything, or runs at least ``EXPOSURE_FREE_M`` and its midpoint
+    sees the open along one of 17 level or upward directions (a camera in a walled courtyard or
+    under deep eaves).
+    Faces buried inside other parts, the inside of a sealed hall and a box sealed inside another
+    reach the open along no such path: no exterior camera can see them. Vectorised: each round casts
+    one direction for every sample still unresolved.
+    """
+    p = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    n = np.asarray(normals, dtype=np.float32).reshape(-1, 3)
+    exposed = np.zeros(len(p), bool)
+    if len(p) == 0:
+        return exposed
+    origins = p + EXPOSURE_OFFSET_M * n
+
+    def cast(starts: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        rays = np.concatenate([starts, dirs], axis=1).astype(np.float32)
+        return scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+
+    def resolve(rows: np.ndarray, dirs: np.ndarray) -> None:
+        t = cast(origins[rows], dirs)
+        escaped = ~np.isfinite(t)
+        exposed[rows[escaped]] = True
+        room = np.flatnonzero(np.isfinite(t) & (t >= EXPOSURE_FREE_M))
+        if len(room) == 0:
+            return
+        middles = origins[rows[room]] + dirs[room] * (0.5 * t[room])[:, None]
+        k = len(OPEN_DIRECTIONS)
+        t2 = cast(np.repeat(middles, k, axis=0), np.tile(OPEN_DIRECTIONS, (len(middles), 1)))
+        sees_open = (~np.isfinite(t2)).reshape(len(middles), k).any(axis=1)
+        exposed[rows[room[sees_open]]] = True
+
+    resolve(np.arange(len(p)), n)
+    for d in sphere_directions(n_directions):
+        rows = np.flatnonzero(~exposed)
+        if len(rows) == 0:
+            break
+        rows = rows[n[rows] @ d >= EXPOSURE_MIN_COS]
+        if len(rows):
+            resolve(rows, np.broadcast_to(d, (len(rows), 3)))
+    return exposed

@@ -2,33 +2,51 @@
 
 Frame: the file's up axis (``z`` or ``y``) becomes +z, coordinates are multiplied by the file's
 unit (Collada ``<unit meter=...>``; other formats are taken as metres) and by ``scale``, then the
-mesh is moved so that its lowest point sits at z = 0 and its footprint is centred on x = y = 0.
-A textured ground plane (``ground_margin_m`` beyond the footprint) is added unless disabled, and
-faces lying on z = 0 facing down are dropped (they would z-fight with the ground).
+mesh is moved so that the ground (``ground_height``: the lowest point, the height under most of the
+footprint, or a given height) sits at z = 0 and its footprint is centred on x = y = 0. A textured
+ground plane (``ground_margin_m`` beyond the footprint) is added unless disabled, faces below it or
+lying on it facing down are dropped, and parts that would float a little above it get a plinth
+(``scene.ground.floating_pads``).
 
 Textures referenced by the file are looked up beside it and in the usual asset folders
-(``textures/``, ``../materials/textures/`` as in Gazebo models). ``add_detail`` multiplies fine
-procedural detail onto the plain textures of low-detail assets (see ``scene.textures.detail_overlay``).
+(``textures/``, ``../materials/textures/`` as in Gazebo models). Parts without a texture (uniform
+grey or one flat colour) get a photo-like material by surface class (``scene.mesh_materials``);
+``add_detail`` multiplies fine procedural detail onto maps coarser than ``detail_above_texel_m`` or
+too plain for SIFT (``auto``), onto every map (``true``) or none (``false``). Models of unknown
+units (over 2 km or under 1 m across), with NaN vertices or with inward-facing closed parts are
+refused with the option that fixes them.
 """
 
 from __future__ import annotations
 
 import hashlib
 import io
+import logging
 import os
 import re
 import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import cv2
 import numpy as np
 import trimesh
 from PIL import Image
 
 from scene.base import Box, MeshPart, Scene
+from scene.ground import floating_pads, footprint_ground_height
+from scene.mesh_materials import class_textures, map_texel_m, material_parts
 from scene.procedural.geometry import Material, Piece, _split_by_uv, _visible_faces, ground_tiles
 from scene.textures import cached_texture, detail_overlay, material_seed
 
+log = logging.getLogger(__name__)
+
+# A map whose median absolute Laplacian (grey levels) is below this is too plain for SIFT whatever
+# its resolution, and gets detail in ``add_detail: auto`` (the procedural materials: 32-41; the
+# shared game assets' maps: 3-17).
+PLAIN_MAP_LAPLACIAN = 20.0
+# A model outside this size (m, largest side) is in units other than the ones assumed.
+SIZE_RANGE_M = (1.0, 2000.0)
 SUPPORTED_SUFFIXES = (".obj", ".glb", ".gltf", ".ply", ".dae", ".stl", ".off")
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tga", ".bmp", ".tif", ".tiff", ".gif", ".webp")
 # Texture side limit after detail upsampling (MuJoCo uploads every texture to the GPU).
@@ -77,7 +95,7 @@ def load_mesh_scene(
     path: str | os.PathLike,
     up_axis: str = "z",
     scale: float = 1.0,
-    add_detail: bool = False,
+    add_detail: str | bool = "auto",
     apron_m: float = 3.0,
     ground: bool = True,
     ground_margin_m: float = 30.0,
@@ -85,6 +103,13 @@ def load_mesh_scene(
     seed: int = 0,
     cache_dir: str | os.PathLike | None = None,
     name: str | None = None,
+    detail_above_texel_m: float = 0.03,
+    material_texel_m: float = 0.01,
+    ground_height: str | float = "lowest",
+    ground_snap_m: float = 1.5,
+    flip_normals: bool = False,
+    drop_invalid_faces: bool = False,
+    check_size: bool = True,
 ) -> Scene:
     """Load a mesh file as a Scene in metres, Z up, ground at z = 0.
 
@@ -92,18 +117,28 @@ def load_mesh_scene(
         path: mesh file (OBJ/MTL, GLB/glTF, PLY, DAE, STL, OFF) with texture or vertex colours.
         up_axis: the file's up axis, ``z`` or ``y``.
         scale: extra factor to metres, applied after the file's own unit (Collada ``<unit>``).
-        add_detail: multiply fine procedural detail onto the textures (and give untextured
-            uniform-colour parts a detailed texture of their colour).
+        add_detail: ``auto`` (fine procedural detail on maps coarser than ``detail_above_texel_m``
+            metres per texel), ``true`` (every map) or ``false``.
         apron_m: sideways margin of the evaluation region around the structure (metres).
         ground: add a textured ground plane reaching ``ground_margin_m`` beyond the structure.
         detail_strength: relative amplitude of the detail (0.3 = +-30 % brightness at 1 sigma).
-        seed: seed of the detail and the ground texture.
-        cache_dir: where the ground texture is cached (``cache_dir/textures``), None for no cache.
+        seed: seed of the detail, the materials and the ground texture.
+        cache_dir: where generated textures are cached (``cache_dir/textures``), None for no cache.
         name: scene name (default: the file's stem).
+        detail_above_texel_m: ``auto`` detail threshold (m per texel on the surface).
+        material_texel_m: texel size (m) of the materials of untextured parts.
+        ground_height: ``lowest`` (the lowest point), ``footprint`` (the height under most of the
+            footprint) or a number (a height in the file's frame, in metres after unit and scale).
+        ground_snap_m: a part whose base hangs at most this high above the ground with nothing
+            under it gets a plinth (0: none; the model's parts float on purpose).
+        flip_normals: reverse every face (a model exported with inward normals).
+        drop_invalid_faces: drop faces that use NaN or infinite vertices instead of refusing them.
+        check_size: refuse a model over 2 km or under 1 m across (a sign of wrong units).
 
     Raises:
         FileNotFoundError: the file or a texture it needs does not exist.
-        ValueError: unreadable file, unsupported format, no faces, undecodable texture, bad option.
+        ValueError: unreadable file, unsupported format, no faces, undecodable texture, bad option,
+            wrong units, NaN vertices, inward normals (each message names the option that fixes it).
     """
     started = time.perf_counter()
     path = Path(path)
@@ -122,6 +157,9 @@ def load_mesh_scene(
     if apron_m < 0 or ground_margin_m < apron_m:
         raise ValueError(f"need 0 <= apron_m ({apron_m}) <= ground_margin_m ({ground_margin_m})")
 
+    if str(add_detail).lower() not in ("auto", "true", "false"):
+        raise ValueError(f"scene.add_detail must be auto, true or false, got {add_detail!r}")
+    add_detail = str(add_detail).lower()
     resolver = _AssetResolver(path)
     try:
         loaded = trimesh.load(str(path), resolver=resolver, process=False)
@@ -134,54 +172,97 @@ def load_mesh_scene(
 
     factor = _unit_to_metres(path) * float(scale)
     transform = np.eye(3) if up_axis == "z" else np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
-    all_v = np.concatenate([g.vertices for g in geometries]) @ transform.T * factor
-    lo, hi = all_v.min(0), all_v.max(0)
-    shift = -np.array([0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), lo[2]])
+    geometry_faces = [_valid_faces(g, path, drop_invalid_faces) for g in geometries]
+    model = [
+        (
+            np.nan_to_num(np.asarray(g.vertices, float)) @ transform.T * factor,
+            f[:, ::-1] if flip_normals else f,
+        )
+        for g, f in zip(geometries, geometry_faces, strict=True)
+    ]
+    used = np.concatenate([v[np.unique(f)] for v, f in model if len(f)])
+    if len(used) == 0:
+        raise ValueError(f"mesh file {path} has no valid faces")
+    lo, hi = used.min(0), used.max(0)
+    _check_model(path, model, hi - lo, factor, check_size, flip_normals)
+    if ground_height == "lowest":
+        base = lo[2]
+    elif ground_height == "footprint":
+        base = footprint_ground_height(
+            trimesh.Trimesh(np.concatenate([v for v, _ in model]), _stacked_faces(model), process=False)
+        )
+    else:
+        try:
+            base = float(ground_height)
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"scene.ground_height must be lowest, footprint or a height in metres, got {ground_height!r}"
+            ) from None
+    shift = -np.array([0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), base])
 
     parts: list[MeshPart] = []
     textures: dict[str, np.ndarray] = {}
     image_keys: dict[str, str] = {}  # image content hash -> texture key (shared images load once)
-    color_keys: dict[tuple, str] = {}
     stem = name or path.stem
     n_images = len({_image_hash(_visual(g)[1]) for g in geometries if _visual(g)[1] is not None})
     # Detail upsampling budget: one or a few maps may grow to 4096 px, many maps to 2048 px.
     max_side = _MAX_DETAIL_SIDE if n_images <= 4 else _MAX_DETAIL_SIDE // 2
-    for gi, g in enumerate(geometries):
-        vertices = np.asarray(g.vertices, float) @ transform.T * factor + shift
-        faces = np.asarray(g.faces, np.int64)
+    rng = np.random.default_rng([seed, 11])
+    placed: list[tuple[np.ndarray, np.ndarray]] = []
+    plainness: dict[str, bool] = {}
+    report = {"kept_maps": [], "detailed_maps": [], "materials": []}
+    for gi, (g, (vertices, faces)) in enumerate(zip(geometries, model, strict=True)):
+        vertices = vertices + shift
         keep = _visible_faces(vertices, faces, [], np.zeros((0, 2, 3)), below_ground=True)
         if not keep.any():
             continue
         faces = faces[keep]
+        placed.append((vertices, faces))
         part_name = f"{stem}_{gi}"
         uv, image, color = _visual(g)
         if uv is not None and image is not None:
             digest = _image_hash(image)
             key = image_keys.get(digest)
-            if key is None:
-                key = f"{stem}_tex{len(image_keys)}"
+            texel = map_texel_m(vertices, faces, uv, image.size)
+            coarse = add_detail == "true" or (
+                add_detail == "auto" and (texel > detail_above_texel_m or _plain(image, digest, plainness))
+            )
+            if key is None or (coarse and not key.endswith("_detail")):
+                key = f"{stem}_tex{len(image_keys)}" + ("_detail" if coarse else "")
                 image_keys[digest] = key
                 rgb = np.asarray(image.convert("RGB"))
-                if add_detail:
+                if coarse:
                     up = max(1.0, min(4.0, max_side / max(rgb.shape[:2])))
                     rgb = detail_overlay(rgb, material_seed(seed, key), detail_strength, up)
                 textures[key] = np.ascontiguousarray(rgb)
+            report["detailed_maps" if key.endswith("_detail") else "kept_maps"].append(part_name)
             # Faces keep the file's UVs; trimesh already duplicated vertices at UV seams.
             parts.append(MeshPart(part_name, vertices, faces, uv=uv, texture=key))
-        elif add_detail and color is not None and color.ndim == 1:
-            rgb = tuple(int(c) for c in color[:3])
-            key = color_keys.get(rgb)
-            if key is None:
-                key = f"{stem}_detail{len(color_keys)}"
-                color_keys[rgb] = key
-                plain = np.broadcast_to(np.asarray(rgb, np.uint8), (1024, 1024, 3))
-                textures[key] = detail_overlay(plain, material_seed(seed, key), detail_strength)
-            corner_uv = _box_uv(vertices, faces, period_m=1024 * 0.01)
-            v, f, u = _split_by_uv(vertices, faces, corner_uv)
-            parts.append(MeshPart(part_name, v, f, uv=u, texture=key))
-        else:
-            colors = None if color is None else np.broadcast_to(color[..., :3], (len(vertices), 3))
-            parts.append(MeshPart(part_name, vertices, faces, vertex_colors=colors))
+        elif color is not None and color.ndim == 2:  # per-vertex colours (a coloured scan): kept
+            parts.append(MeshPart(part_name, vertices, faces, vertex_colors=color[..., :3]))
+        else:  # no texture: uniform grey or one flat colour
+            parts += material_parts(part_name, vertices, faces, color, stem, material_texel_m, rng)
+            report["materials"].append(part_name)
+    if report["materials"]:
+        textures.update(class_textures(stem, seed, cache_dir))
+    pads = floating_pads(placed, ground_snap_m) if ground else []
+    for k, (vertices, faces) in enumerate(pads):
+        parts += material_parts(f"{stem}_pad{k}", vertices, faces, None, stem, material_texel_m, rng)
+    if pads and not report["materials"]:
+        textures.update(class_textures(stem, seed, cache_dir))
+    log.info(
+        "%s: %d parts keep their maps, %d get detail on a map coarser than %.3f m/texel or too plain, "
+        "%d untextured parts get materials by surface class%s; %d plinth(s) under floating parts",
+        stem,
+        len(report["kept_maps"]),
+        len(report["detailed_maps"]),
+        detail_above_texel_m,
+        len(report["materials"]),
+        f" ({', '.join(report['materials'][:8])}{', ...' if len(report['materials']) > 8 else ''})"
+        if report["materials"]
+        else "",
+        len(pads),
+    )
     if not parts:
         raise ValueError(f"mesh file {path} has no faces above the ground")
     problems = _texture_problems(resolver, geometries)
@@ -195,7 +276,14 @@ def load_mesh_scene(
         "unit_name": _collada_unit_name(path) if path.suffix.lower() == ".dae" else None,
         "scale": float(scale),
         "up_axis": up_axis,
-        "add_detail": bool(add_detail),
+        "add_detail": add_detail,
+        "detail_rule": f"maps coarser than {detail_above_texel_m} m/texel or plainer than "
+        f"{PLAIN_MAP_LAPLACIAN} grey levels of median |Laplacian|",
+        "ground_height_in_file_m": float(base / factor) if factor else None,
+        "n_parts_kept_maps": len(report["kept_maps"]),
+        "n_parts_detailed_maps": len(report["detailed_maps"]),
+        "n_parts_materials": len(report["materials"]),
+        "n_plinths": len(pads),
         "n_faces_structure": int(sum(len(p.faces) for p in parts)),
         "extent_m": [float(v) for v in structure.extent],
     }
@@ -222,6 +310,70 @@ def load_mesh_scene(
     info["texture_bytes"] = int(sum(t.nbytes for t in textures.values()))
     info["build_seconds"] = round(time.perf_counter() - started, 3)
     return Scene(stem, parts, textures, structure, evaluation, seed=None, info=info)
+
+
+def _valid_faces(g: trimesh.Trimesh, path: Path, drop: bool) -> np.ndarray:
+    """The faces of ``g`` (F, 3); faces on NaN or infinite vertices refused, or dropped when ``drop``."""
+    faces = np.asarray(g.faces, np.int64)
+    bad_vertex = ~np.isfinite(np.asarray(g.vertices, float)).all(axis=1)
+    if not bad_vertex.any():
+        return faces
+    bad_face = bad_vertex[faces].any(axis=1)
+    if not drop:
+        raise ValueError(
+            f"{path}: {int(bad_vertex.sum())} vertices are NaN or infinite ({int(bad_face.sum())} faces use "
+            "them): the file is damaged; scene.drop_invalid_faces=true drops those faces"
+        )
+    return faces[~bad_face]
+
+
+def _stacked_faces(model: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    offsets = np.cumsum([0] + [len(v) for v, _ in model[:-1]])
+    return np.concatenate([f + o for (_, f), o in zip(model, offsets, strict=True)])
+
+
+def _check_model(
+    path: Path, model, extent: np.ndarray, factor: float, check_size: bool, flipped: bool
+) -> None:
+    """Refuse wrong units and inward-facing closed parts, naming the option that fixes each; warn
+    about non-manifold edges (rendering and scoring handle them)."""
+    size = float(extent.max())
+    if check_size and not SIZE_RANGE_M[0] <= size <= SIZE_RANGE_M[1]:
+        raise ValueError(
+            f"{path}: the model is {size:.4g} m across (file unit x scene.scale = {factor:g} m): unknown "
+            "units? set scene.scale (0.001 for millimetres, 0.01 for centimetres, 0.0254 for inches), "
+            "or scene.check_size=false for a model that really is this size"
+        )
+    closed = [(v, f) for v, f in model if len(f) >= 4]
+    inward, n_closed, non_manifold = 0, 0, 0
+    for vertices, faces in closed:
+        mesh = trimesh.Trimesh(vertices, faces, process=True, validate=False)
+        edges = mesh.edges_sorted
+        _, counts = np.unique(edges, axis=0, return_counts=True)
+        non_manifold += int(np.count_nonzero(counts > 2))
+        if mesh.is_watertight:
+            n_closed += 1
+            inward += int(mesh.volume < 0)
+    if n_closed and inward > n_closed / 2:
+        fix = "remove scene.flip_normals=true" if flipped else "set scene.flip_normals=true"
+        raise ValueError(
+            f"{path}: {inward} of {n_closed} closed parts face inwards (negative volume): the normals are "
+            f"inverted; {fix}"
+        )
+    if non_manifold:
+        log.warning(
+            "%s: %d non-manifold edges (shared by more than two faces); rendered and scored as they are",
+            path,
+            non_manifold,
+        )
+
+
+def _plain(image, digest: str, memo: dict[str, bool]) -> bool:
+    """Whether a map is too plain for SIFT (``PLAIN_MAP_LAPLACIAN``), computed once per image."""
+    if digest not in memo:
+        grey = np.asarray(image.convert("L"), np.float32)
+        memo[digest] = float(np.median(np.abs(cv2.Laplacian(grey, cv2.CV_32F)))) < PLAIN_MAP_LAPLACIAN
+    return memo[digest]
 
 
 def _image_hash(image) -> str:
@@ -299,18 +451,6 @@ def _unit_to_metres(path: Path) -> float:
     except (ET.ParseError, ValueError) as err:
         raise ValueError(f"cannot read the Collada header of {path}: {err}") from err
     return 1.0
-
-
-def _box_uv(vertices, faces, period_m: float) -> np.ndarray:
-    """(F, 3, 2) box-projected UVs (1 unit = ``period_m`` metres) for untextured parts."""
-    tri = vertices[faces]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    axis = np.argmax(np.abs(n), axis=1)
-    uv = np.empty(tri.shape[:2] + (2,))
-    for a, (i, j) in enumerate(((1, 2), (0, 2), (0, 1))):
-        m = axis == a
-        uv[m, :, 0], uv[m, :, 1] = tri[m][..., i], tri[m][..., j]
-    return uv / period_m
 
 
 def _ground_part(tile: Piece, mat: Material, seed: int) -> MeshPart:

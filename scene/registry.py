@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import os
 from collections.abc import Callable, Mapping
 
@@ -21,9 +22,8 @@ def load_scene(cfg: Mapping, cache_dir: str | os.PathLike | None = "cache") -> S
 
     Args:
         cfg: the ``scene`` config. Needs ``name`` (one of ``KNOWN_SCENES``). Procedural scenes take
-            ``seed`` and their size/texture settings; ``mesh`` takes ``path``, ``up_axis`` (z|y),
-            ``scale``, ``add_detail`` and optionally ``apron_m``, ``ground``, ``ground_margin_m``,
-            ``detail_strength``, ``seed``.
+            ``seed`` and their size/texture settings; ``mesh`` takes ``path`` and the keyword options
+            of ``scene.mesh_loader.load_mesh_scene`` (conf/scene/mesh.yaml lists them).
         cache_dir: stage cache folder; generated textures go to ``cache_dir/textures`` (None: no cache).
 
     Raises:
@@ -43,16 +43,10 @@ def load_scene(cfg: Mapping, cache_dir: str | os.PathLike | None = "cache") -> S
             path = None
         if path in (None, "", "???"):
             raise ValueError("scene=mesh needs scene.path=FILE (a textured OBJ/GLB/PLY/DAE mesh)")
-        return load_mesh_scene(
-            path,
-            up_axis=str(cfg.get("up_axis", "z")),
-            scale=float(cfg.get("scale", 1.0)),
-            add_detail=bool(cfg.get("add_detail", False)),
-            apron_m=float(cfg.get("apron_m", 3.0)),
-            ground=bool(cfg.get("ground", True)),
-            ground_margin_m=float(cfg.get("ground_margin_m", 30.0)),
-            detail_strength=float(cfg.get("detail_strength", 0.3)),
-            seed=int(cfg.get("seed", 0)),
-            cache_dir=cache_dir,
-        )
+        options = {k: v for k, v in dict(cfg).items() if k not in ("name", "path")}
+        known = set(inspect.signature(load_mesh_scene).parameters) - {"path", "cache_dir", "name"}
+        unknown = sorted(set(options) - known)
+        if unknown:
+            raise ValueError(f"scene=mesh: unknown option(s) {unknown}; known: {sorted(known)}")
+        return load_mesh_scene(path, cache_dir=cache_dir, **options)
     raise ValueError(f"unknown scene {name!r}; known scenes: {list(KNOWN_SCENES)}")

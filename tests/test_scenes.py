@@ -380,7 +380,7 @@ def test_mesh_loader_bad_input(tmp_path):
 
 def test_mesh_loader_school_in_metres_with_detail():
     """The shared school (Collada in inches, Z-up) is about 33 x 17.5 x 14 m (its README)."""
-    plain = load_mesh_scene(SCHOOL, ground=False)
+    plain = load_mesh_scene(SCHOOL, ground=False, add_detail=False)
     assert plain.info["unit_to_m"] == pytest.approx(0.0254)
     assert np.allclose(plain.structure_bounds.extent, [33.0, 17.5, 14.2], atol=0.3)
     detailed = load_scene(
