@@ -1,7 +1,8 @@
 """Where a user's model meets the ground: the ground height, and pads under parts that would float.
 
 A model whose nave reaches deeper than its choir, placed with its lowest point on the ground,
-leaves the choir hovering above a slit that no real building has. ``floating_pads`` finds parts whose
+leaves the choir hovering above a slit that no real building has. ``floating_pads`` finds connected
+pieces whose
 base hangs between ``PAD_MIN_GAP_M`` and ``snap_m`` above the ground with nothing of the model under
 it and fills the gap with a plinth of the part's footprint (on a ``cell_m`` raster), its top just
 under the part. ``footprint_ground_height`` is the height under most of the model's footprint.
@@ -43,7 +44,7 @@ def footprint_ground_height(mesh: trimesh.Trimesh, cell_m: float = 0.5) -> float
 def floating_pads(
     parts: list[tuple[np.ndarray, np.ndarray]], snap_m: float, cell_m: float = 0.25
 ) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Plinths (vertices, faces) under the parts (world metres, ground z = 0) that float a little.
+    """Plinths (vertices, faces) under the pieces (world metres, ground z = 0) that float a little.
 
     Args:
         parts: (vertices, faces) of every part of the model.
@@ -60,7 +61,7 @@ def floating_pads(
     )
     scene = raycasting_scene(whole)
     pads = []
-    for vertices, faces in parts:
+    for vertices, faces in _components(parts):
         used = vertices[np.unique(faces)]
         z0 = float(used[:, 2].min())
         if not PAD_MIN_GAP_M < z0 <= snap_m:
@@ -86,6 +87,14 @@ def floating_pads(
             continue
         pads.append(_columns_mesh(grid, origin, cell_m, z0 - PAD_TOP_BELOW_M))
     return pads
+
+
+def _components(parts: list[tuple[np.ndarray, np.ndarray]]):
+    """The connected pieces (vertices, faces) of every part: one file part may hold a whole building."""
+    for vertices, faces in parts:
+        mesh = trimesh.Trimesh(vertices, faces, process=True, validate=False)  # merges shared corners
+        for piece in mesh.split(only_watertight=False):
+            yield np.asarray(piece.vertices, float), np.asarray(piece.faces, np.int64)
 
 
 def _base_points(vertices: np.ndarray, faces: np.ndarray, cell_m: float) -> np.ndarray:

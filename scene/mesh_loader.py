@@ -280,6 +280,7 @@ def load_mesh_scene(
         "detail_rule": f"maps coarser than {detail_above_texel_m} m/texel or plainer than "
         f"{PLAIN_MAP_LAPLACIAN} grey levels of median |Laplacian|",
         "ground_height_in_file_m": float(base / factor) if factor else None,
+        "shift_m": [float(v) for v in shift],
         "n_parts_kept_maps": len(report["kept_maps"]),
         "n_parts_detailed_maps": len(report["detailed_maps"]),
         "n_parts_materials": len(report["materials"]),

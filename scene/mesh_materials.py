@@ -10,6 +10,8 @@ MuJoCo material colour), so a model with hundreds of coloured parts still upload
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from scene.base import MeshPart
@@ -59,12 +61,13 @@ def class_textures(stem: str, seed: int, cache_dir) -> dict[str, np.ndarray]:
     return out
 
 
+@functools.cache
 def preset_colour(name: str) -> np.ndarray:
     """Mean RGB (0-1) of a surface class's preset: the tint of a part that has no colour."""
     preset = SURFACE_PRESETS[name]
     colour = PRESETS[preset].get("color")
     if colour is None:
-        colour = make_texture(preset, 64, 0).reshape(-1, 3).mean(axis=0) / 255.0
+        colour = make_texture(preset, 256, 0).reshape(-1, 3).mean(axis=0) / 255.0
     return np.asarray(colour, dtype=float)
 
 
