@@ -22,7 +22,7 @@ Definitions (distances in metres, percentages in 0-100):
   ``undersides`` (facing down: eaves, arches). ``gt_share_{class}`` is the class's % of the samples,
   ``comp_{t}_{class}`` the completeness over its samples (null for a class without samples).
 - Enclosed surface (``exclude_enclosed``): a sample that no straight ray from it reaches the open
-  along (buried faces, sealed interiors; ``scene.enclosure.exposed_samples``) is left out of every
+  along (buried faces, sealed interiors; ``scene.enclosure.exposure``) is left out of every
   completeness figure and counted in ``n_gt_samples_enclosed`` and ``gt_enclosed_pct[_{class}]``
   (% of all samples, of the class's samples); ``n_gt_samples`` counts the scored ones.
 """
@@ -43,7 +43,7 @@ from evaluate.geometry import SurfaceDistance, clip_mesh_to_box, sample_surface,
 from evaluate.loading import load_reconstruction
 from evaluate.settings import EvaluationSettings, percentile_key, threshold_key
 from scene.base import Box
-from scene.enclosure import exposed_samples, raycasting_scene
+from scene.enclosure import exposure, raycasting_scene
 
 log = logging.getLogger(__name__)
 
@@ -191,7 +191,7 @@ def score_details(
         )
     exposure_start = time.perf_counter()
     exposed = (
-        exposed_samples(raycasting_scene(gt_mesh), samples, sample_normals)
+        exposure(raycasting_scene(gt_mesh), samples, sample_normals)
         if settings.exclude_enclosed
         else np.ones(len(samples), bool)
     )

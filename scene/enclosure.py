@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 import trimesh
+from scipy.spatial import cKDTree
 
 # Share of a position's rays that must leave an interior for it to count as enclosed (a camera in
 # a doorway or under an eave still sees out along most rays).
@@ -125,3 +126,33 @@ def exposed_samples(
         if len(rows):
             resolve(rows, np.broadcast_to(d, (len(rows), 3)))
     return exposed
+
+
+# exposure(): above this many samples, rays are cast from an even subsample of this size and every
+# sample takes the answer of its nearest subsample facing the same way (exposure changes over
+# decimetres, samples lie millimetres to centimetres apart); normals weigh this much per unit.
+EXPOSURE_MAX_CAST = 400_000
+EXPOSURE_NORMAL_WEIGHT_M = 0.5
+
+
+def exposure(
+    scene: o3d.t.geometry.RaycastingScene,
+    points: np.ndarray,
+    normals: np.ndarray,
+    max_cast: int = EXPOSURE_MAX_CAST,
+) -> np.ndarray:
+    """``exposed_samples`` for millions of samples: cast for at most ``max_cast`` of them.
+
+    ``points`` should be spatially ordered (as the evaluation's Z-ordered samples are), so that
+    every k-th sample is an even subsample.
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    if len(p) <= max_cast:
+        return exposed_samples(scene, p, n)
+    step = int(np.ceil(len(p) / max_cast))
+    sub = np.arange(0, len(p), step)
+    answer = exposed_samples(scene, p[sub], n[sub])
+    tree = cKDTree(np.hstack([p[sub], EXPOSURE_NORMAL_WEIGHT_M * n[sub]]))
+    _, nearest = tree.query(np.hstack([p, EXPOSURE_NORMAL_WEIGHT_M * n]), k=1, workers=-1)
+    return answer[nearest]
