@@ -86,12 +86,12 @@ def exposed_samples(
 
     A sample is exposed when a ray from it (started ``EXPOSURE_OFFSET_M`` off the surface along its
     normal; along the normal first, then ``n_directions`` fixed directions of its half-space) either
-    leaves the scene without hitting anything, or runs at least ``EXPOSURE_FREE_M`` and its midpoint
-    sees the open along one of 17 level or upward directions (a camera in a walled courtyard or
-    under deep eaves).
-    Faces buried inside other parts, the inside of a sealed hall and a box sealed inside another
-    reach the open along no such path: no exterior camera can see them. Vectorised: each round casts
-    one direction for every sample still unresolved.
+    leaves the scene level or upwards without hitting anything (below z = 0 is earth), or runs at
+    least ``EXPOSURE_FREE_M`` and its midpoint sees the open along one of 17 level or upward
+    directions (a camera in a walled courtyard or under deep eaves). Faces buried inside other
+    parts, the inside of a sealed hall and a box sealed inside another reach the open along no
+    such path: no exterior camera can see them. Vectorised: each round casts one direction for
+    every sample still unresolved.
     """
     p = np.asarray(points, dtype=np.float32).reshape(-1, 3)
     n = np.asarray(normals, dtype=np.float32).reshape(-1, 3)
@@ -106,12 +106,14 @@ def exposed_samples(
 
     def resolve(rows: np.ndarray, dirs: np.ndarray) -> None:
         t = cast(origins[rows], dirs)
-        escaped = ~np.isfinite(t)
+        # Below z = 0 is earth: a ray that leaves the scene downwards went under the ground's edge.
+        escaped = ~np.isfinite(t) & (dirs[:, 2] >= 0.0) & (origins[rows, 2] >= 0.0)
         exposed[rows[escaped]] = True
         room = np.flatnonzero(np.isfinite(t) & (t >= EXPOSURE_FREE_M))
+        middles = origins[rows[room]] + dirs[room] * (0.5 * t[room])[:, None]
+        room, middles = room[middles[:, 2] >= 0.0], middles[middles[:, 2] >= 0.0]
         if len(room) == 0:
             return
-        middles = origins[rows[room]] + dirs[room] * (0.5 * t[room])[:, None]
         k = len(OPEN_DIRECTIONS)
         t2 = cast(np.repeat(middles, k, axis=0), np.tile(OPEN_DIRECTIONS, (len(middles), 1)))
         sees_open = (~np.isfinite(t2)).reshape(len(middles), k).any(axis=1)

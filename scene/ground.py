@@ -42,7 +42,10 @@ def footprint_ground_height(mesh: trimesh.Trimesh, cell_m: float = 0.5) -> float
 
 
 def floating_pads(
-    parts: list[tuple[np.ndarray, np.ndarray]], snap_m: float, cell_m: float = 0.25
+    parts: list[tuple[np.ndarray, np.ndarray]],
+    snap_m: float,
+    cell_m: float = 0.25,
+    support: list[tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Plinths (vertices, faces) under the pieces (world metres, ground z = 0) that float a little.
 
@@ -50,13 +53,16 @@ def floating_pads(
         parts: (vertices, faces) of every part of the model.
         snap_m: largest gap (m) filled; 0 fills none (the model says its parts float).
         cell_m: raster of the pads' outlines (m).
+        support: what may hold a piece up (default ``parts``): the whole model, with the faces
+            dropped for lying on the ground (a hall's floor slab holds its interior up).
     """
     if snap_m <= 0 or not parts:
         return []
-    offsets = np.cumsum([0] + [len(v) for v, _ in parts[:-1]])
+    support = parts if support is None else support
+    offsets = np.cumsum([0] + [len(v) for v, _ in support[:-1]])
     whole = trimesh.Trimesh(
-        np.concatenate([v for v, _ in parts]),
-        np.concatenate([f + o for (_, f), o in zip(parts, offsets, strict=True)]),
+        np.concatenate([v for v, _ in support]),
+        np.concatenate([f + o for (_, f), o in zip(support, offsets, strict=True)]),
         process=False,
     )
     scene = raycasting_scene(whole)
@@ -75,7 +81,7 @@ def floating_pads(
             [points[:, :2], points[:, 2] - 0.01, np.zeros((len(points), 2)), -np.ones(len(points))]
         )
         t = scene.cast_rays(o3d.core.Tensor(down.astype(np.float32)))["t_hit"].numpy()
-        free = points[~(t < points[:, 2] - 0.02)]
+        free = points[~np.isfinite(t)]  # the ground is not in ``support``: any hit holds it up
         if len(free) == 0:
             continue
         origin = free[:, :2].min(axis=0) - cell_m

@@ -209,6 +209,7 @@ def load_mesh_scene(
     max_side = _MAX_DETAIL_SIDE if n_images <= 4 else _MAX_DETAIL_SIDE // 2
     rng = np.random.default_rng([seed, 11])
     placed: list[tuple[np.ndarray, np.ndarray]] = []
+    support = [(vertices + shift, faces) for vertices, faces in model if len(faces)]
     plainness: dict[str, bool] = {}
     report = {"kept_maps": [], "detailed_maps": [], "materials": []}
     for gi, (g, (vertices, faces)) in enumerate(zip(geometries, model, strict=True)):
@@ -245,7 +246,7 @@ def load_mesh_scene(
             report["materials"].append(part_name)
     if report["materials"]:
         textures.update(class_textures(stem, seed, cache_dir))
-    pads = floating_pads(placed, ground_snap_m) if ground else []
+    pads = floating_pads(placed, ground_snap_m, support=support) if ground else []
     for k, (vertices, faces) in enumerate(pads):
         parts += material_parts(f"{stem}_pad{k}", vertices, faces, None, stem, material_texel_m, rng)
     if pads and not report["materials"]:

@@ -122,22 +122,34 @@ def test_cloud_equal_to_the_gt_samples_is_complete_and_exact(sphere):
 
 def test_completeness_per_surface_class_of_a_roof_only_cloud():
     # A 4 x 4 x 2 m block on 20 x 20 m of ground: ground 400 m^2, roof 16, walls 32, underside 16
-    # (the block's bottom face). A cloud on the roof alone covers the roof and the top t of the walls.
+    # (the block's bottom face). The underside and the 16 m^2 of ground under the block face each
+    # other: no camera sees them, so they are counted apart and scored against nobody. A cloud on
+    # the roof alone covers the roof and the top t of the walls.
     block = trimesh.creation.box(extents=(4.0, 4.0, 2.0))
     block.apply_translation((0.0, 0.0, 1.0))
     gt = trimesh.util.concatenate([plane(-10, 10, -10, 10), block])
     roof = grid(-2, 2, -2, 2, 0.02, z=2.0)
     record = score_points(roof, gt, Box((-11, -11, -1), (11, 11, 3)))
-    areas = {"ground": 400.0, "roofs": 16.0, "walls": 32.0, "undersides": 16.0}
+    assert record["gt_enclosed_pct"] == pytest.approx(100.0 * 32.0 / 464.0, abs=0.3)
+    assert record["gt_enclosed_pct_undersides"] == 100.0
+    assert record["gt_enclosed_pct_ground"] == pytest.approx(100.0 * 16.0 / 400.0, abs=0.3)
+    assert record["gt_enclosed_pct_walls"] == 0.0 and record["gt_enclosed_pct_roofs"] == 0.0
+    areas = {"ground": 384.0, "roofs": 16.0, "walls": 32.0, "undersides": 0.0}
     for name, area in areas.items():
-        assert record[f"gt_share_{name}"] == pytest.approx(100.0 * area / 464.0, abs=0.3)
+        assert record[f"gt_share_{name}"] == pytest.approx(100.0 * area / 432.0, abs=0.3)
     assert record["comp_050_roofs"] == pytest.approx(100.0)
     assert record["comp_050_walls"] == pytest.approx(100.0 * 0.05 / 2.0, abs=0.3)
     assert record["comp_075_walls"] == pytest.approx(100.0 * 0.075 / 2.0, abs=0.3)
-    assert record["comp_050_ground"] == 0.0 and record["comp_075_undersides"] == 0.0
+    assert record["comp_050_ground"] == 0.0 and record["comp_075_undersides"] is None
+    # with the exclusion off, every sample is scored, as the first study did
+    everything = score_points(roof, gt, Box((-11, -11, -1), (11, 11, 3)), {"exclude_enclosed": False})
+    assert everything["gt_share_undersides"] == pytest.approx(100.0 * 16.0 / 464.0, abs=0.3)
+    assert everything["n_gt_samples_enclosed"] == 0
     # the classes partition the samples: their weighted completeness is the overall one
     for key in ("050", "075"):
-        total = sum(record[f"gt_share_{c}"] * record[f"comp_{key}_{c}"] for c in SURFACE_CLASSES) / 100.0
+        total = (
+            sum(record[f"gt_share_{c}"] * (record[f"comp_{key}_{c}"] or 0.0) for c in SURFACE_CLASSES) / 100.0
+        )
         assert total == pytest.approx(record[f"comp_{key}"], abs=1e-9)
 
 
