@@ -158,8 +158,17 @@ def render_mesh(part: MeshPart, crease_deg: float, face_texcoord: np.ndarray | N
         texcoords = np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=1).astype(np.float32)
     else:
         texcoords = None
+    out_vertices = vertices[corner_vertex].astype(np.float32)
+    if len(out_vertices) < 4:  # MuJoCo compiles no mesh of fewer than 4 vertices: a lone triangle
+        # gets an unused copy of its first corner (no face refers to it, nothing is drawn twice)
+        pad = 4 - len(out_vertices)
+        out_vertices = np.concatenate([out_vertices, np.repeat(out_vertices[:1], pad, axis=0)])
+        normals = np.concatenate([normals, np.repeat(normals[:1], pad, axis=0)])
+        texcoords = (
+            None if texcoords is None else np.concatenate([texcoords, np.repeat(texcoords[:1], pad, axis=0)])
+        )
     return RenderMesh(
-        vertices=vertices[corner_vertex].astype(np.float32),
+        vertices=out_vertices,
         faces=inverse.reshape(n_faces, 3).astype(np.int32),
         normals=normals,
         texcoords=texcoords,

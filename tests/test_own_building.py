@@ -128,3 +128,19 @@ def test_flip_normals_fixes_an_inverted_model_and_nan_vertices_are_named(tmp_pat
     (tmp_path / "nan.obj").write_text("\n".join(lines) + "\n")
     with pytest.raises(ValueError, match="1 vertices are NaN .* scene.drop_invalid_faces=true"):
         load_mesh_scene(tmp_path / "nan.obj", cache_dir=None)
+
+
+def test_a_part_of_one_triangle_renders():
+    # A user's model may hold a part of a single triangle (the power plant does): MuJoCo compiles no
+    # mesh of fewer than 4 vertices, so the renderer pads it with an unused corner.
+    from render import SceneRenderer
+    from scene.base import Box, MeshPart, Scene
+
+    vertices = np.array([[-5.0, -5.0, 0.0], [5.0, -5.0, 0.0], [0.0, 5.0, 0.0]])
+    part = MeshPart("tri", vertices, np.array([[0, 1, 2]]), vertex_colors=np.full((3, 3), 200, np.uint8))
+    scene = Scene("tri", [part], {}, Box((-5, -5, 0), (5, 5, 1)), Box((-5, -5, 0), (5, 5, 1)))
+    with SceneRenderer(scene, Intrinsics(64, 48, 60.0), RENDER_CFG) as renderer:
+        image = renderer.render(np.array([0.0, 0.0, 10.0, 0.0, -90.0])).astype(int)
+    centre, corner = image[24, 32], image[0, 0]
+    assert abs(centre[0] - centre[2]) < 10  # the grey triangle under the camera
+    assert corner[2] - corner[0] > 20  # the blue sky beside it
