@@ -134,7 +134,11 @@ def score_file_details(
     """``score_file`` keeping the per-point distances (for the error pictures); see ``score_details``."""
     settings = EvaluationSettings.from_config(cfg)
     points, kind = load_reconstruction(
-        path, settings.mesh_input, settings.mesh_sample_density_per_m2, settings.gt_sample_seed
+        path,
+        settings.mesh_input,
+        settings.mesh_sample_density_per_m2,
+        settings.gt_sample_seed,
+        max_samples=settings.max_gt_samples,
     )
     details = score_details(
         points, scene.ground_truth_mesh, scene.evaluation_region, settings, gt_region_mesh, progress

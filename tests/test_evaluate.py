@@ -321,6 +321,14 @@ def test_mesh_files_score_vertices_or_surface_samples(tmp_path):
     assert by_surface["n_points"] == 5000
     assert by_surface["acc95_m"] == pytest.approx(0.04, rel=1e-9)
     assert by_surface["comp_050"] == 100.0
+    # a sampling past the limit is refused before it is drawn (a large proxy at 10,000/m^2 once
+    # took 22 GB and the OOM killer)
+    with pytest.raises(ValueError, match="needs 5000 samples, more than evaluate.max_gt_samples = 4999"):
+        score_file(
+            path,
+            truth,
+            {"mesh_input": "surface", "mesh_sample_density_per_m2": 5000.0, "max_gt_samples": 4999},
+        )
 
 
 # --- stage, record, cost, CLI ------------------------------------------------------------------
