@@ -124,15 +124,14 @@ def _columns_mesh(grid: np.ndarray, origin: np.ndarray, cell_m: float, top: floa
     ]
     padded = np.pad(grid, 1)
     sides = {  # neighbour offset -> the quad's corners (counter-clockwise seen from outside)
-        (1, 0): lambda m: ((x1, y0, zeros), (x1, y1, zeros), (x1, y1, tops), (x1, y0, tops)),
-        (-1, 0): lambda m: ((x0, y1, zeros), (x0, y0, zeros), (x0, y0, tops), (x0, y1, tops)),
-        (0, 1): lambda m: ((x1, y1, zeros), (x0, y1, zeros), (x0, y1, tops), (x1, y1, tops)),
-        (0, -1): lambda m: ((x0, y0, zeros), (x1, y0, zeros), (x1, y0, tops), (x0, y0, tops)),
+        (1, 0): ((x1, y0, zeros), (x1, y1, zeros), (x1, y1, tops), (x1, y0, tops)),
+        (-1, 0): ((x0, y1, zeros), (x0, y0, zeros), (x0, y0, tops), (x0, y1, tops)),
+        (0, 1): ((x1, y1, zeros), (x0, y1, zeros), (x0, y1, tops), (x1, y1, tops)),
+        (0, -1): ((x0, y0, zeros), (x1, y0, zeros), (x1, y0, tops), (x0, y0, tops)),
     }
     for (di, dj), corners in sides.items():
         open_side = ~padded[i + 1 + di, j + 1 + dj]
-        c = corners(None)
-        quads.append(np.stack([np.column_stack([a[open_side] for a in corner]) for corner in c], 1))
+        quads.append(np.stack([np.column_stack([a[open_side] for a in corner]) for corner in corners], 1))
     quads = np.concatenate(quads)  # (Q, 4, 3)
     vertices = quads.reshape(-1, 3)
     base = 4 * np.arange(len(quads))[:, None]
