@@ -9,6 +9,12 @@ A variant is ``NAME=KEY=VALUE,...`` over ``conf/reconstruct/default.yaml``'s ``s
 into ``--out/<name>``, aligns and merges its models to the simulated GNSS fixes (seed 0) as a cell
 does, and reports the registered images and camera errors. Run it on an idle machine and quote
 the table it prints.
+
+``--database RUN/recon/database.db`` maps a copy of a cell's database instead (its features,
+pairs and GNSS priors as they are): only the mapping settings vary, extraction and matching show 0.
+
+    python -m experiments.bench_sfm RUN/images --database RUN/recon/database.db \\
+        --variant default= --variant skip=mapping.global_ba_skip_redundant_points=true
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import sys
 from pathlib import Path
 
@@ -28,8 +35,31 @@ from experiments.bench_dense import parse_variant  # noqa: E402
 STAGES = ("extraction", "matching", "mapping")
 
 
-def run_variant(image_dir: Path, out_dir: Path, overrides: list[str], seed: int = 0) -> dict:
-    """SfM, GNSS alignment and merging of the flight in ``image_dir`` with ``overrides``."""
+def map_database(database: Path, flight, out_dir: Path, sfm_cfg, seed: int):
+    """Map a copy of ``database`` (features, pairs and priors already there) with ``sfm_cfg``."""
+    import pycolmap
+
+    from reconstruct.sfm import SfmResult, map_reconstruction, sfm_options
+    from reconstruct.timing import stage_time
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    copy = out_dir / "database.db"
+    shutil.copyfile(database, copy)
+    options = sfm_options(sfm_cfg, seed)
+    pycolmap.set_random_seed(int(seed))
+    with stage_time() as clock:
+        models = map_reconstruction(copy, flight.image_dir, options)
+    n_pairs = pycolmap.Database.open(copy).num_matched_image_pairs()
+    times = {"extraction": 0.0, "matching": 0.0, "mapping": clock.wall_s}
+    cpu = {"extraction": 0.0, "matching": 0.0, "mapping": clock.cpu_s}
+    return SfmResult(models, "database", times, cpu, n_pairs)
+
+
+def run_variant(
+    image_dir: Path, out_dir: Path, overrides: list[str], seed: int = 0, database: Path | None = None
+) -> dict:
+    """SfM, GNSS alignment and merging of the flight in ``image_dir`` with ``overrides``
+    (only mapping, from a copy of ``database``, when given)."""
     from omegaconf import OmegaConf
 
     from reconstruct.align import georeference_models, pose_errors
@@ -44,7 +74,10 @@ def run_variant(image_dir: Path, out_dir: Path, overrides: list[str], seed: int 
     flight = read_flight(image_dir)
     sigma = float(cfg.gnss.sigma_m)
     gnss = simulate_gnss(flight.positions, sigma, seed)
-    sfm = run_sfm(flight, out_dir, gnss, sigma, sfm_cfg, seed)
+    if database is None:
+        sfm = run_sfm(flight, out_dir, gnss, sigma, sfm_cfg, seed)
+    else:
+        sfm = map_database(database, flight, out_dir, sfm_cfg, seed)
     model, merged = georeference_models(sfm.models, flight.names, gnss, sigma, cfg.align, seed)
     record = {f"{s}_time_s": sfm.times_s[s] for s in STAGES} | {f"{s}_cpu_s": sfm.cpu_s[s] for s in STAGES}
     record |= {"n_image_pairs": sfm.n_image_pairs, "model_sizes": merged["model_sizes"]}
@@ -56,11 +89,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("image_dir", type=Path, help="a rendered flight (images + cameras.json)")
     parser.add_argument("--variant", action="append", required=True, help="NAME=KEY=VALUE,... (repeatable)")
     parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "bench_sfm")
+    parser.add_argument("--database", type=Path, help="map a copy of this database (mapping variants only)")
     args = parser.parse_args(argv)
     try:
         variants = [parse_variant(v) for v in args.variant]
         if not (args.image_dir / "cameras.json").is_file():
             raise ValueError(f"{args.image_dir}: no cameras.json (not a rendered flight)")
+        if args.database is not None and not args.database.is_file():
+            raise ValueError(f"{args.database}: no such database")
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -73,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = {}
     for name, overrides in variants:
         try:
-            r = run_variant(args.image_dir, args.out / name, overrides)
+            r = run_variant(args.image_dir, args.out / name, overrides, database=args.database)
         except ValueError as exc:
             print(f"error: variant {name}: {exc}", file=sys.stderr)
             return 2

@@ -91,6 +91,11 @@ def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> Sfm
             f"reconstruct.sfm.mapping.method must be one of {MAPPING_METHODS}, got {mapping_method!r}"
         )
 
+    if float(pcfg["global_ba_growth_ratio"]) <= 1.0:
+        raise ValueError(
+            f"reconstruct.sfm.mapping.global_ba_growth_ratio must be > 1, got {pcfg['global_ba_growth_ratio']}"
+        )
+
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = threads
     extraction.max_image_size = int(ecfg["max_image_size"])
@@ -127,6 +132,10 @@ def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> Sfm
     incremental.ba_refine_extra_params = bool(pcfg["refine_extra_params"])
     incremental.mapper.abs_pose_refine_focal_length = bool(pcfg["refine_focal_length"])
     incremental.mapper.abs_pose_refine_extra_params = bool(pcfg["refine_extra_params"])
+    incremental.ba_global_frames_ratio = float(pcfg["global_ba_growth_ratio"])
+    incremental.ba_global_points_ratio = float(pcfg["global_ba_growth_ratio"])
+    incremental.ba_global_max_num_iterations = int(pcfg["global_ba_max_iterations"])
+    incremental.mapper.ba_global_ignore_redundant_points3D = bool(pcfg["global_ba_skip_redundant_points"])
     incremental.use_prior_position = bool(pcfg["use_prior_position"])
     incremental.use_robust_loss_on_prior_position = bool(pcfg["use_prior_position"]) and bool(
         pcfg["robust_loss_on_prior_position"]

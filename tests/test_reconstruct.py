@@ -541,6 +541,17 @@ def test_prior_position_settings_reach_the_mapper():
     assert not none.incremental.use_prior_position and not none.incremental.use_robust_loss_on_prior_position
 
 
+def test_global_ba_schedule_reaches_the_mapper():
+    options = sfm_options(reconstruct_cfg().sfm).incremental
+    assert (options.ba_global_frames_ratio, options.ba_global_points_ratio) == (1.3, 1.3)
+    assert options.ba_global_max_num_iterations == 25
+    assert not options.mapper.ba_global_ignore_redundant_points3D
+    skip = sfm_options(reconstruct_cfg(**{"sfm.mapping.global_ba_skip_redundant_points": True}).sfm)
+    assert skip.incremental.mapper.ba_global_ignore_redundant_points3D
+    with pytest.raises(ValueError, match="global_ba_growth_ratio must be > 1"):
+        sfm_options(reconstruct_cfg(**{"sfm.mapping.global_ba_growth_ratio": 1.0}).sfm)
+
+
 def test_pose_prior_pairs_skip_views_back_to_back():
     """Four cameras facing +y and four facing -y at the same places on a line: with a 75 deg axis
     limit only same-facing cameras pair (each with its 3 nearest), and a distance cut-off of 1.5 m
