@@ -91,10 +91,9 @@ def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> Sfm
             f"reconstruct.sfm.mapping.method must be one of {MAPPING_METHODS}, got {mapping_method!r}"
         )
 
-    if float(pcfg["global_ba_growth_ratio"]) <= 1.0:
-        raise ValueError(
-            f"reconstruct.sfm.mapping.global_ba_growth_ratio must be > 1, got {pcfg['global_ba_growth_ratio']}"
-        )
+    growth = float(pcfg["global_ba_growth_ratio"])
+    if growth <= 1.0:
+        raise ValueError(f"reconstruct.sfm.mapping.global_ba_growth_ratio must be > 1, got {growth}")
 
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = threads
@@ -132,8 +131,8 @@ def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> Sfm
     incremental.ba_refine_extra_params = bool(pcfg["refine_extra_params"])
     incremental.mapper.abs_pose_refine_focal_length = bool(pcfg["refine_focal_length"])
     incremental.mapper.abs_pose_refine_extra_params = bool(pcfg["refine_extra_params"])
-    incremental.ba_global_frames_ratio = float(pcfg["global_ba_growth_ratio"])
-    incremental.ba_global_points_ratio = float(pcfg["global_ba_growth_ratio"])
+    incremental.ba_global_frames_ratio = growth
+    incremental.ba_global_points_ratio = growth
     incremental.ba_global_max_num_iterations = int(pcfg["global_ba_max_iterations"])
     incremental.mapper.ba_global_ignore_redundant_points3D = bool(pcfg["global_ba_skip_redundant_points"])
     incremental.use_prior_position = bool(pcfg["use_prior_position"])
