@@ -62,7 +62,7 @@ KIND_COLOURS = {
     "exploration": "#8c564b",
 }
 _SPARE_COLOURS = ("#e377c2", "#17becf", "#bcbd22", "#7f7f7f", "#393b79", "#637939")
-METHOD_MARKERS = {"ours": "o", "smith": "s", "yan": "^", "lawnmower": "D"}
+METHOD_MARKERS = {"ours": "o", "ours_plus": "P", "smith": "s", "yan": "^", "lawnmower": "D"}
 _SPARE_MARKERS = ("v", "P", "X", "*", "<", ">")
 # Longest error image shown in a panel, in inches (keeps a panel of many views printable).
 PANEL_CELL_IN = 3.2

@@ -27,7 +27,13 @@ VIEWPOINTS_FILE = Path("plan") / "viewpoints.csv"
 PLAN_FILE = Path("plan") / "plan.json"
 
 # Display names and order of the methods (baselines first, ours last, as in the paper's tables).
-METHOD_NAMES = {"lawnmower": "Lawnmower", "smith": "Smith et al.", "yan": "Yan et al.", "ours": "Ours"}
+METHOD_NAMES = {
+    "lawnmower": "Lawnmower",
+    "smith": "Smith et al.",
+    "yan": "Yan et al.",
+    "ours": "Ours",
+    "ours_plus": "Ours+",
+}
 METHOD_ORDER = ("lawnmower", "smith", "yan", "ours")
 SCENE_ORDER = ("tomb", "church", "cathedral")
 

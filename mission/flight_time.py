@@ -142,11 +142,13 @@ def legs_time_s(starts, ends, drone: DroneSettings) -> np.ndarray:
 
 
 def stops_time_s(yaw_deg, pitch_deg, drone: DroneSettings) -> np.ndarray:
-    """Time (s) at each waypoint: yaw and gimbal from the previous waypoint's attitude, then a photo."""
+    """Time (s) at each waypoint: yaw and gimbal from the previous waypoint's attitude, then a photo.
+
+    ``yaw_deg``, ``pitch_deg``: (..., V) in flight order along the last axis."""
     yaw = np.asarray(yaw_deg, dtype=float)
     pitch = np.asarray(pitch_deg, dtype=float)
-    turn = np.abs((np.diff(yaw, prepend=yaw[:1]) + 180.0) % 360.0 - 180.0)
-    tilt = np.abs(np.diff(pitch, prepend=pitch[:1]))
+    turn = np.abs((np.diff(yaw, prepend=yaw[..., :1]) + 180.0) % 360.0 - 180.0)
+    tilt = np.abs(np.diff(pitch, prepend=pitch[..., :1]))
     return np.maximum(turn / drone.yaw_rate_deg_s, tilt / drone.gimbal_rate_deg_s) + drone.photo_time_s
 
 

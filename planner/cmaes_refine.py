@@ -116,6 +116,7 @@ def refine_clusters(
     pass_index: int = 0,
     point_rows: bool = True,
     desc: str = "CMA-ES",
+    time_term=None,
 ) -> dict:
     """One clustered CMA-ES pass over the viewpoints at ``rows``; updates ``viewpoints`` and ``state``.
 
@@ -128,6 +129,8 @@ def refine_clusters(
         settings: CMA-ES settings.
         seed, pass_index: make the per-cluster CMA-ES seeds.
         point_rows: whether the moved rows count for the point scores (see ``ObjectiveState``).
+        time_term: a ``planner.flight_time_term.FlightTimeTerm`` (``ours_plus``): maximise R minus
+            the flight-time cost, the visiting order fixed for the pass; None: R alone (the paper).
 
     Returns:
         statistics: evaluations, generations, clusters, improved clusters, R before and after, time.
@@ -137,6 +140,10 @@ def refine_clusters(
     r_start = state.R
     evaluations = generations = improved = 0
     clusters = [rows[c] for c in spatial_clusters(viewpoints[rows, :3], settings.cluster_size)]
+    if time_term is not None:
+        order = time_term.order(viewpoints)
+        slot = np.empty_like(order)
+        slot[order] = np.arange(len(order))
     for ci, cluster in enumerate(tqdm(clusters, desc=desc, leave=False, disable=None)):
         m = len(cluster)
         lo, hi = _boxes(viewpoints[cluster], limits, settings)
@@ -152,7 +159,8 @@ def refine_clusters(
         if settings.popsize:
             opts["popsize"] = int(settings.popsize)
         es = cma.CMAEvolutionStrategy(x0, float(settings.sigma0), opts)
-        best_r, best_vps, best_obs = state.R, None, None
+        current_cost = 0.0 if time_term is None else float(time_term.cost(viewpoints[order]))
+        best_r, best_vps, best_obs = state.R - current_cost, None, None
         npr = np.full(m, bool(point_rows))
         while not es.stop():
             xs = np.asarray(es.ask())
@@ -165,16 +173,21 @@ def refine_clusters(
             if len(feasible):
                 obs = model.observe(cand[feasible].reshape(-1, 5))
                 prop = state.evaluate(cluster, obs, len(feasible), new_point_rows=npr)
-                fitness[feasible] = -prop.R
+                value = prop.R
+                if time_term is not None:
+                    sets = np.repeat(viewpoints[order][None], len(feasible), axis=0)
+                    sets[:, slot[cluster]] = cand[feasible]
+                    value = value - time_term.cost(sets)
+                fitness[feasible] = -value
                 evaluations += len(feasible)
-                j = int(np.argmax(prop.R))
-                if prop.R[j] > best_r:
-                    best_r = float(prop.R[j])
+                j = int(np.argmax(value))
+                if value[j] > best_r:
+                    best_r = float(value[j])
                     best_vps = cand[feasible[j]].copy()
                     best_obs = obs.take(np.arange(j * m, (j + 1) * m))
             es.tell(list(xs), fitness.tolist())
             generations += 1
-        if best_vps is not None and best_r > state.R + 1e-9:
+        if best_vps is not None and best_r > state.R - current_cost + 1e-9:
             state.commit(cluster, best_obs, new_point_rows=npr)
             best_vps[:, 3] = (best_vps[:, 3] + 180.0) % 360.0 - 180.0
             viewpoints[cluster] = best_vps

@@ -6,6 +6,9 @@
    either one is scored; the better removal is accepted when R stays at or above
    ``R_reference - tolerance`` (R_reference: R after step 1), so the whole culling pass lowers R by
    at most ``tolerance``.
+
+With a flight-time term (``ours_plus``) the pass works on R minus the flight-time cost: a removal
+that loses a little R but saves its stop and detour can pass the floor.
 """
 
 from __future__ import annotations
@@ -24,6 +27,8 @@ def cull(
     overlap_threshold: float,
     tolerance: float,
     desc: str = "culling",
+    time_term=None,
+    viewpoints: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict]:
     """Cull viewpoints among the ``cullable`` (V,) rows of ``state``; the state is updated.
 
@@ -32,6 +37,8 @@ def cull(
         cullable: (V,) bool, rows that may be removed.
         overlap_threshold: pairs with r_ij >= this are redundancy candidates.
         tolerance: largest accepted drop of R (objective units) over the pass.
+        time_term: a ``planner.flight_time_term.FlightTimeTerm``, with ``viewpoints`` (V, 5) the rows'
+            viewpoints; None: R alone (the paper).
 
     Returns:
         kept: (V,) bool over the input rows; statistics (removed empty, removed redundant,
@@ -50,7 +57,20 @@ def cull(
     if len(empty):
         state.commit(empty)
         ids = np.delete(ids, empty)
-    r_reference = state.R
+    if time_term is not None:
+        viewpoints = np.asarray(viewpoints, float).reshape(n0, 5)
+        order = time_term.order(viewpoints)
+
+    def time_cost(without: int | None = None) -> float:
+        """Flight-time cost of the present rows (minus input row ``without``) in the pass's order."""
+        if time_term is None:
+            return 0.0
+        visit = [i for i in order if present[i] and i != without]
+        return float(time_term.cost(viewpoints[visit]))
+
+    present = np.zeros(n0, bool)
+    present[ids] = True
+    r_reference = state.R - time_cost()
     floor = r_reference - float(tolerance)
 
     n = state.n_visible
@@ -58,10 +78,8 @@ def cull(
     ratio = np.where(smaller > 0, state.common / np.maximum(smaller, 1), 0.0)
     ok = np.triu(ratio >= overlap_threshold, 1) & (cullable[ids][:, None] | cullable[ids][None, :])
     ii, jj = np.nonzero(ok)
-    order = np.lexsort((jj, ii, -ratio[ii, jj]))
-    pairs = [(int(ids[ii[k]]), int(ids[jj[k]])) for k in order]
-    present = np.zeros(n0, bool)
-    present[ids] = True
+    pair_order = np.lexsort((jj, ii, -ratio[ii, jj]))
+    pairs = [(int(ids[ii[k]]), int(ids[jj[k]])) for k in pair_order]
     removed = tried = 0
     row_of = np.full(n0, -1)
     row_of[ids] = np.arange(len(ids))
@@ -73,7 +91,7 @@ def cull(
         # R without a viewpoint only changes when the set does: score each one once per set
         for x in options:
             if x not in removal_score:
-                removal_score[x] = state.evaluate_removal(row_of[x])
+                removal_score[x] = state.evaluate_removal(row_of[x]) - time_cost(without=x)
         scores = [removal_score[x] for x in options]
         tried += 1
         best = int(np.argmax(scores))
@@ -92,5 +110,6 @@ def cull(
         "R_before": r_before,
         "R_reference": r_reference,
         "R_after": state.R,
+        **({} if time_term is None else {"flight_time_cost_after": time_cost()}),
         "time_s": time.perf_counter() - t0,
     }

@@ -61,16 +61,31 @@ class ObjectiveState:
         n_points: P.
         mode: ``detail`` or ``coverage`` point scores.
         points: (P, 3) the samples in metres; needed when ``params.matchable_overlap``.
+        point_weights: (P,) positive weight of each sample's score in R (``ours_plus``: how unsure
+            the proxy is there); None: every sample counts once, as in the paper.
     """
 
     def __init__(
-        self, params: HeuristicParams, n_points: int, mode: str = "detail", points: np.ndarray | None = None
+        self,
+        params: HeuristicParams,
+        n_points: int,
+        mode: str = "detail",
+        points: np.ndarray | None = None,
+        point_weights: np.ndarray | None = None,
     ) -> None:
         if mode not in ("detail", "coverage"):
             raise ValueError(f"mode must be 'detail' or 'coverage', got {mode!r}")
         if params.matchable_overlap and (points is None or len(points) != int(n_points)):
             raise ValueError("matchable_overlap needs the (P, 3) sample points")
         self.points = None if points is None else np.asarray(points, dtype=np.float64)
+        if point_weights is not None:
+            point_weights = np.asarray(point_weights, dtype=np.float64).reshape(-1)
+            if (
+                len(point_weights) != int(n_points)
+                or not (np.isfinite(point_weights) & (point_weights > 0)).all()
+            ):
+                raise ValueError("point_weights must be (P,) finite and positive")
+        self.point_weights = point_weights
         self.params = params
         self.mode = mode
         self.per_view = mode == "detail" and params.point_score == "per_view"
@@ -273,10 +288,18 @@ class ObjectiveState:
         self.point_score[cols] = self._combine(count, dmax.astype(float), fmax.astype(float), sq)
 
     # ---------------------------------------------------------------------------- full score
+    def _weighted_sum(self, scores: np.ndarray, cols: np.ndarray | None = None):
+        """Sum over the last axis of point scores (of the columns ``cols``, default all), each times
+        its sample's weight; a float for 1-D ``scores``, else one sum per leading index."""
+        if self.point_weights is not None:
+            scores = scores * (self.point_weights if cols is None else self.point_weights[cols])
+        total = scores.sum(axis=-1)
+        return float(total) if np.ndim(total) == 0 else total
+
     def _full_parts(self) -> dict[str, float]:
         self._removal_cache = None  # called after every change of the set
         n_vp = self.n_viewpoints
-        rp = float(self.point_score.sum())
+        rp = self._weighted_sum(self.point_score)
         if n_vp == 0:
             return {
                 "R": rp,
@@ -353,10 +376,10 @@ class ObjectiveState:
         if len(remove):
             touched |= self.obs.visible[remove].any(axis=0)
         cols = np.flatnonzero(touched)
-        r_point = np.full(lam, float(self.point_score.sum()))
+        r_point = np.full(lam, self._weighted_sum(self.point_score))
         if len(cols):
-            r_point += self._touched_point_scores(cols, keep_mask, new, lam, m, npr).sum(axis=1)
-            r_point -= float(self.point_score[cols].sum())
+            r_point += self._weighted_sum(self._touched_point_scores(cols, keep_mask, new, lam, m, npr), cols)
+            r_point -= self._weighted_sum(self.point_score[cols], cols)
 
         # ---- viewpoint-set part
         if n_total == 0:
@@ -433,13 +456,12 @@ class ObjectiveState:
         keep_mask = np.ones(n, bool)
         keep_mask[row] = False
         cols = np.flatnonzero(self._vis[row, :n_pt] if n else np.zeros(n_pt, bool))
-        r_point = float(self.point_score.sum())
+        r_point = self._weighted_sum(self.point_score)
         if len(cols):
             empty = Observations.empty(n_pt)
-            r_point += float(
-                self._touched_point_scores(cols, keep_mask, empty, 1, 0, np.zeros(0, bool)).sum()
-            )
-            r_point -= float(self.point_score[cols].sum())
+            touched = self._touched_point_scores(cols, keep_mask, empty, 1, 0, np.zeros(0, bool))
+            r_point += float(self._weighted_sum(touched, cols)[0])
+            r_point -= self._weighted_sum(self.point_score[cols], cols)
         n_total = n - 1
         nv = cache["n_visible"]
         s_vis = (nv.sum() - nv[row]) / (n_total * n_pt)

@@ -18,7 +18,8 @@ from __future__ import annotations
 import copy
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -189,7 +190,10 @@ def _add_viewpoints(
         if not need.any():
             break
         cand = np.flatnonzero(need)
-        pick = int(cand[np.lexsort((cand, state.count[cand], state.point_score[cand]))[0]])
+        keys = (cand, state.count[cand], state.point_score[cand])
+        if state.point_weights is not None:  # ours_plus: the most unsure samples first
+            keys += (-state.point_weights[cand],)
+        pick = int(cand[np.lexsort(keys)[0]])
         selected[pick] = True
         group = make_group(pick)
         if group is not None:
@@ -210,7 +214,10 @@ def _add_viewpoints(
         if not weak.any():
             break
         cand = np.flatnonzero(weak)
-        pick = int(cand[np.lexsort((cand, state.point_score[cand]))[0]])
+        urgency = state.point_score[cand]  # the weakest first ...
+        if state.point_weights is not None:  # ... ours_plus: the largest weighted deficit first
+            urgency = (urgency - repair_threshold) * state.point_weights[cand]
+        pick = int(cand[np.lexsort((cand, urgency))[0]])
         selected[pick] = True
         group = make_group(pick)
         if group is None:
@@ -246,6 +253,21 @@ def _coverage_group(point_index, state, model, limits, settings: CandidateSettin
     return vps[select_spread(dirs, first, settings.group_size, allowed=side_pool(frontal, parent, first))]
 
 
+@dataclass(frozen=True)
+class PlanExtensions:
+    """What ``ours_plus`` adds to the paper's planner (``planner/ours_plus.py``); None: the paper's.
+
+    Attributes:
+        weigh_samples: (points, normals) (P, 3) each -> (weights (P,), record for ``Plan.info``).
+        time_term: take-off point (3,) -> a ``planner.flight_time_term.FlightTimeTerm``.
+        planner: the name the plan carries.
+    """
+
+    weigh_samples: Callable | None = None
+    time_term: Callable | None = None
+    planner: str = "ours"
+
+
 def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: int) -> Plan:
     """Plan detail and model-coverage viewpoints on ``proxy`` and order them into a flight.
 
@@ -265,12 +287,14 @@ def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: 
     # One BLAS thread: the hot path is many small products and CMA-ES's 60 x 60 eigendecompositions,
     # which a multi-threaded OpenBLAS slows down by an order of magnitude on a shared 2-core machine.
     with threadpool_limits(limits=1):
-        return _plan(proxy, intrinsics, params, seed)
+        return plan_with(proxy, intrinsics, resolve_params(params), seed, PlanExtensions())
 
 
-def _plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: int) -> Plan:
+def plan_with(
+    proxy: trimesh.Trimesh, intrinsics: Intrinsics, cfg: dict, seed: int, ext: PlanExtensions
+) -> Plan:
+    """``plan`` with resolved parameters ``cfg`` and the ``ext`` additions (call under one BLAS thread)."""
     t_start = time.perf_counter()
-    cfg = resolve_params(params)
     validate_proxy(proxy)
     h, c, cv = cfg["heuristics"], cfg["candidates"], cfg["coverage"]
     gsd = _positive(cfg, "target_gsd_m")
@@ -325,14 +349,24 @@ def _plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed:
             f"planner ours: cmaes.cluster_size >= 1 and max_generations >= 0 needed, got {cm}"
         )
 
+    takeoff = cfg["takeoff"]
+    if takeoff is None:
+        lo = proxy.bounds[0]
+        takeoff = [float(lo[0]), float(lo[1]), 0.0]
+    takeoff = np.asarray(takeoff, dtype=float).reshape(-1)
+    if takeoff.shape != (3,) or not np.isfinite(takeoff).all():
+        raise PlanningError(f"planner ours: takeoff must be [x, y, z] in metres, got {cfg['takeoff']}")
+    time_term = None if ext.time_term is None else ext.time_term(takeoff)
+
     t0 = time.perf_counter()
     points, normals = sample_surface(proxy, n_points, seed)
+    weights, evidence = (None, None) if ext.weigh_samples is None else ext.weigh_samples(points, normals)
     det_model = VisibilityModel(
         proxy, points, normals, intrinsics, det_limits, vis["ray_offset_m"], vis["image_margin_px"]
     )
     cov_model = det_model.with_limits(cov_limits)
     rec = _Recorder([det_model, cov_model])
-    state = ObjectiveState(det_params, n_points, mode="detail", points=points)
+    state = ObjectiveState(det_params, n_points, mode="detail", points=points, point_weights=weights)
     rec.record("sample", None, state, [], sample_time_s=time.perf_counter() - t0)
 
     fallbacks = tuple(float(f) for f in c["fallback_distance_factors"])
@@ -381,10 +415,18 @@ def _plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed:
     cul = cfg["culling"]
     cull_tol = float(cul["tolerance"]) * n_points
 
-    def cull_unless_off(objective: ObjectiveState, cullable: np.ndarray, desc: str):
+    def cull_unless_off(objective: ObjectiveState, cullable: np.ndarray, vps: list, desc: str):
         if not bool(cul["enabled"]):  # the ablation without culling
             return np.ones(len(cullable), bool), {"removed_empty": 0, "removed_redundant": 0}
-        return cull(objective, cullable, float(cul["overlap_threshold"]), cull_tol, desc=desc)
+        return cull(
+            objective,
+            cullable,
+            float(cul["overlap_threshold"]),
+            cull_tol,
+            desc=desc,
+            time_term=time_term,
+            viewpoints=np.asarray(vps),
+        )
 
     # ------------------------------------------------------------------ detail viewpoints
     viewpoints: list[np.ndarray] = []
@@ -423,10 +465,13 @@ def _plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed:
             seed,
             r,
             desc=f"detail round {r + 1}: CMA-ES",
+            time_term=time_term,
         )
         viewpoints = list(vps)
         rec.record("detail_cmaes", r, state, kinds, **_drop_time(stats))
-        kept, stats = cull_unless_off(state, np.ones(len(viewpoints), bool), f"detail round {r + 1}: cull")
+        kept, stats = cull_unless_off(
+            state, np.ones(len(viewpoints), bool), viewpoints, f"detail round {r + 1}: cull"
+        )
         viewpoints = [v for v, k in zip(viewpoints, kept, strict=True) if k]
         kinds = [s for s, k in zip(kinds, kept, strict=True) if k]
         rec.record("detail_culling", r, state, kinds, **_drop_time(stats))
@@ -436,7 +481,7 @@ def _plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed:
     detail_parts = state.parts()  # Eq. 10 over the detail views, detail range
 
     # ------------------------------------------------------------------ model-coverage viewpoints
-    cstate = ObjectiveState(cov_params, n_points, mode="coverage", points=points)
+    cstate = ObjectiveState(cov_params, n_points, mode="coverage", points=points, point_weights=weights)
     cstate.reset(cov_model.observe(np.asarray(viewpoints)), point_rows=np.zeros(len(viewpoints), bool))
     rec.record("coverage_start", None, cstate, kinds)
     cov_excluded = np.zeros(n_points, bool)
@@ -469,11 +514,12 @@ def _plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed:
             100 + r,
             point_rows=True,
             desc=f"coverage round {r + 1}: CMA-ES",
+            time_term=time_term,
         )
         viewpoints = list(vps)
         rec.record("coverage_cmaes", r, cstate, kinds, **_drop_time(stats))
         kept, stats = cull_unless_off(
-            cstate, np.asarray(kinds) == "coverage", f"coverage round {r + 1}: cull"
+            cstate, np.asarray(kinds) == "coverage", viewpoints, f"coverage round {r + 1}: cull"
         )
         viewpoints = [v for v, k in zip(viewpoints, kept, strict=True) if k]
         kinds = [s for s, k in zip(kinds, kept, strict=True) if k]
@@ -493,13 +539,6 @@ def _plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed:
         det_params,
         points,
     )
-    takeoff = cfg["takeoff"]
-    if takeoff is None:
-        lo = proxy.bounds[0]
-        takeoff = [float(lo[0]), float(lo[1]), 0.0]
-    takeoff = np.asarray(takeoff, dtype=float).reshape(-1)
-    if takeoff.shape != (3,) or not np.isfinite(takeoff).all():
-        raise PlanningError(f"planner ours: takeoff must be [x, y, z] in metres, got {cfg['takeoff']}")
     t0 = time.perf_counter()
     order = order_viewpoints(vps[:, :3], takeoff, runs=int(cfg["tsp_runs"]))
     vps, kinds = vps[order], [kinds[i] for i in order]
@@ -525,7 +564,11 @@ def _plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed:
         "flight_length_from_takeoff_m": flight_length(vps[:, :3], takeoff),
         "plan_time_s": total,
     }
-    return Plan(viewpoints=vps, kinds=kinds, planner="ours", info=info)
+    if evidence is not None:
+        info["evidence"] = evidence
+    if time_term is not None:
+        info["time_weight_per_min"] = time_term.weight_per_min
+    return Plan(viewpoints=vps, kinds=kinds, planner=ext.planner, info=info)
 
 
 def _drop_time(stats: dict) -> dict:

@@ -1,0 +1,139 @@
+"""Does ``ours_plus``' evidence mean something? Its weights against the proxy's true error.
+
+    python -m experiments.evidence_check study/default_v3/tomb/ours/seed0 study/... --out results/evidence
+
+For each run directory (any planner: only its scene and its exploration cache entry are read), the
+proxy of that entry is sampled as the planner samples it (``n_points``, the run's seed), each sample
+gets the evidence weight of ``conf/planner/ours_plus.yaml`` from the exploration's fused cloud, and
+its true error is its distance to the ground-truth surface (which the planner never sees). Prints
+and writes, per scene, the Spearman rank correlation between weight and true error, per signal
+too, and the median true error of sure and unsure samples.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from scipy.stats import spearmanr
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script from anywhere
+    sys.path.insert(0, str(ROOT))
+
+from experiments.runs import RunDirectoryError, load_runs, read_run_config, scene_name  # noqa: E402
+from scene.io import write_text_atomic  # noqa: E402
+
+SIGNALS = ("gap", "support", "normal")
+
+
+def ours_plus_evidence_settings():
+    """The ``evidence`` section of ``conf/planner/ours_plus.yaml``."""
+    from omegaconf import OmegaConf
+
+    from planner.evidence import EvidenceSettings
+
+    node = OmegaConf.load(ROOT / "conf" / "planner" / "ours_plus.yaml").evidence
+    return EvidenceSettings.from_config(OmegaConf.to_container(node))
+
+
+def true_error_m(mesh, points: np.ndarray) -> np.ndarray:
+    """Unsigned distance (m) from each point (N, 3) to the surface of ``mesh``."""
+    import open3d as o3d
+
+    from scene.enclosure import raycasting_scene
+
+    query = o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32))
+    return raycasting_scene(mesh).compute_distance(query).numpy().astype(float)
+
+
+def check_entry(entry: Path, ground_truth, n_points: int, seed: int) -> dict:
+    """Weights, signals and true errors of one exploration entry's proxy samples; the correlations."""
+    from experiments.exploration import load_proxy
+    from planner.evidence import evidence_signals, sample_weights
+    from planner.sampling import PROXY_CLOUD_KEY, sample_surface
+
+    settings = ours_plus_evidence_settings()
+    proxy = load_proxy(entry)
+    cloud = proxy.metadata.get(PROXY_CLOUD_KEY)
+    if not cloud or len(cloud["points"]) == 0:
+        raise RunDirectoryError(f"{entry}: the exploration entry holds no fused cloud (recon/dense.ply)")
+    points, normals = sample_surface(proxy, n_points, seed)
+    signals = evidence_signals(points, normals, cloud["points"], cloud["normals"], settings)
+    weights = sample_weights(signals["uncertainty"], settings)
+    error = true_error_m(ground_truth, points)
+    unsure = signals["uncertainty"] > 0.5
+    row = {
+        "n_samples": len(points),
+        "share_unsure": float(unsure.mean()),
+        "spearman_weight": float(spearmanr(weights, error).statistic),
+        **{f"spearman_{s}": float(spearmanr(signals[s], error).statistic) for s in SIGNALS},
+        "median_error_sure_m": float(np.median(error[~unsure])) if (~unsure).any() else float("nan"),
+        "median_error_unsure_m": float(np.median(error[unsure])) if unsure.any() else float("nan"),
+        "share_error_over_10cm": float(np.mean(error > 0.1)),
+    }
+    return row
+
+
+def to_markdown(frame: pd.DataFrame) -> str:
+    """One row per scene: samples, unsure share, rank correlations, median true errors."""
+    lines = [
+        "| Scene | Samples | Unsure (u > 0.5) | Spearman weight | gap | support | normal "
+        "| Median true error sure / unsure (cm) | True error > 10 cm |",
+        "| :-- | --: | --: | --: | --: | --: | --: | --: | --: |",
+    ]
+    for r in frame.itertuples():
+        lines.append(
+            f"| {scene_name(r.scene)} | {r.n_samples} | {100 * r.share_unsure:.1f} % "
+            f"| {r.spearman_weight:.3f} "
+            f"| {r.spearman_gap:.3f} | {r.spearman_support:.3f} | {r.spearman_normal:.3f} "
+            f"| {100 * r.median_error_sure_m:.1f} / {100 * r.median_error_unsure_m:.1f} "
+            f"| {100 * r.share_error_over_10cm:.1f} % |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("runs", nargs="+", help="run directories (one per scene is enough)")
+    parser.add_argument("--n-points", type=int, default=2048, help="proxy samples (the planner's n_points)")
+    parser.add_argument("--out", type=Path, default=None, help="write evidence_check.md / .json here")
+    args = parser.parse_args(argv)
+    from scene.registry import load_scene
+
+    rows = []
+    try:
+        runs = load_runs(args.runs)
+        for run in runs:
+            entry = run.metrics.get("proxy_entry")
+            config = read_run_config(run.run_dir)
+            if not entry or config is None:
+                raise RunDirectoryError(f"{run.run_dir}: no proxy_entry in metrics.json or no .hydra config")
+            scene = load_scene(config.scene, cache_dir=config.get("cache_dir", "cache"))
+            row = check_entry(
+                ROOT / entry if not Path(entry).is_absolute() else Path(entry),
+                scene.ground_truth_mesh,
+                args.n_points,
+                int(run.seed),
+            )
+            rows.append({"scene": run.scene, "entry": str(entry), **row})
+            print(f"{run.scene}: Spearman(weight, true error) = {row['spearman_weight']:.3f}", flush=True)
+    except (RunDirectoryError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    table = to_markdown(pd.DataFrame(rows).drop_duplicates("entry"))
+    print(table)
+    if args.out is not None:
+        args.out.mkdir(parents=True, exist_ok=True)
+        write_text_atomic(args.out / "evidence_check.md", table + "\n")
+        write_text_atomic(args.out / "evidence_check.json", json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

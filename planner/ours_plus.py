@@ -1,0 +1,92 @@
+"""``ours_plus``: the paper's planner with the two extensions its conclusion proposes.
+
+1. Evidence from the exploratory flight (``planner.evidence``): each proxy sample weighs
+   ``1 + evidence.weight * uncertainty`` in the objective, and the most unsure samples are served
+   first when views are added and repaired. The planner still sees only the exploration's files
+   (its fused cloud travels with the proxy), never the ground truth.
+2. Flight time in the objective (``planner.flight_time_term``): CMA-ES and culling maximise R minus
+   ``flight_time.weight_per_min`` per minute of flight, timed by the missions' model for ``drone``.
+
+With ``evidence.weight = 0`` and ``flight_time.weight_per_min = 0`` the plan is ``ours``' plan, view
+for view. Parameters: ``conf/planner/ours_plus.yaml`` (ours' settings plus the three sections).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+import trimesh
+from threadpoolctl import threadpool_limits
+
+from mission.flight_time import DroneSettings
+from planner.evidence import EvidenceSettings, evidence_signals, sample_weights
+from planner.flight_time_term import FlightTimeTerm
+from planner.ours import PlanExtensions, plan_with, resolve_params
+from planner.sampling import PROXY_CLOUD_KEY
+from scene.camera import Intrinsics
+from scene.plan import Plan, PlanningError
+
+EXTRA_SECTIONS = ("evidence", "flight_time", "drone")
+
+
+def _plain(params: Mapping | None) -> dict:
+    from omegaconf import DictConfig, OmegaConf
+
+    if isinstance(params, DictConfig):
+        return OmegaConf.to_container(params, resolve=True)
+    return dict(params or {})
+
+
+def evidence_weigher(proxy: trimesh.Trimesh, settings: EvidenceSettings):
+    """(points, normals) -> (weights, record) from the cloud the proxy carries; all ones (and a
+    record that says so) when the proxy has none (a degraded ground truth) or the weight is 0."""
+    cloud = proxy.metadata.get(PROXY_CLOUD_KEY)
+
+    def weigh(points: np.ndarray, normals: np.ndarray):
+        if settings.weight == 0.0:
+            return None, {"source": "off"}
+        if not cloud or len(cloud["points"]) == 0:
+            return None, {"source": "none (the proxy carries no exploration cloud)"}
+        signals = evidence_signals(points, normals, cloud["points"], cloud["normals"], settings)
+        weights = sample_weights(signals["uncertainty"], settings)
+        record = {
+            "source": "exploration cloud",
+            "n_cloud_points": len(cloud["points"]),
+            "weight_mean": float(weights.mean()),
+            "weight_max": float(weights.max()),
+            "share_unsure": float(np.mean(signals["uncertainty"] > 0.5)),
+            **{f"share_{k}_signal": float(np.mean(signals[k] > 0.5)) for k in ("gap", "support", "normal")},
+            "weights": np.round(weights, 4).tolist(),
+        }
+        return weights, record
+
+    return weigh
+
+
+def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: int) -> Plan:
+    """Plan like ``planner.ours.plan`` with the exploration's evidence and a flight-time term."""
+    raw = _plain(params)
+    missing = [k for k in EXTRA_SECTIONS if k not in raw]
+    if missing:
+        raise PlanningError(f"planner ours_plus: missing setting(s) {missing} (conf/planner/ours_plus.yaml)")
+    evidence = EvidenceSettings.from_config(raw.pop("evidence"))
+    time_cfg = raw.pop("flight_time")
+    weight_per_min = float(time_cfg["weight_per_min"])
+    if weight_per_min < 0:
+        raise PlanningError(
+            f"planner ours_plus: flight_time.weight_per_min must be >= 0, got {weight_per_min}"
+        )
+    drone = DroneSettings.from_config(raw.pop("drone"))
+    cfg = resolve_params(raw)
+
+    def time_term(takeoff: np.ndarray) -> FlightTimeTerm:
+        return FlightTimeTerm(drone, weight_per_min, np.asarray(takeoff, float))
+
+    ext = PlanExtensions(
+        weigh_samples=evidence_weigher(proxy, evidence),
+        time_term=time_term if weight_per_min > 0 else None,
+        planner="ours_plus",
+    )
+    with threadpool_limits(limits=1):
+        return plan_with(proxy, intrinsics, cfg, seed, ext)
