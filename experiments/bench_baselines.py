@@ -21,7 +21,6 @@ scene (``proxy_entry`` in its ``metrics.json``), with the exploratory cloud Yan'
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import sys
 import time
@@ -32,6 +31,8 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 PLANNERS = ("lawnmower", "smith", "yan")
+# Every planner config (conf/planner/<name>.yaml) can be given; PLANNERS are the default set.
+KNOWN_PLANNERS = tuple(sorted(p.stem for p in (REPO / "conf" / "planner").glob("*.yaml")))
 SCENES = ("tomb", "church", "cathedral")
 
 
@@ -68,7 +69,7 @@ def plan_record(plan, seconds: float) -> dict:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", nargs="+", default=list(SCENES))
-    parser.add_argument("--planners", nargs="+", default=list(PLANNERS), choices=PLANNERS)
+    parser.add_argument("--planners", nargs="+", default=list(PLANNERS), choices=KNOWN_PLANNERS)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, default=None, help="also write the records here")
     parser.add_argument(
@@ -78,11 +79,13 @@ def main(argv=None) -> int:
     if args.proxy is not None and len(args.scenes) != 1:
         parser.error("--proxy is the proxy of one scene: give exactly one --scenes")
 
+    from hydra.utils import get_method
     from omegaconf import OmegaConf
 
     from evaluate.settings import EvaluationSettings
     from experiments.exploration import load_proxy
     from experiments.observations import predicted_coverage
+    from mission.flight_time import DroneSettings, flight_summary
     from reconstruct.proxy import degraded_ground_truth
     from scene.camera import Intrinsics
     from scene.io import write_json_atomic
@@ -113,9 +116,9 @@ def main(argv=None) -> int:
             params = OmegaConf.to_container(cfg.planner, resolve=True)
             if "progress" in params:
                 params["progress"] = False
-            module = importlib.import_module(f"planner.{planner_name}")
+            plan_fn = get_method(cfg.planner._target_)
             t0, c0 = time.perf_counter(), time.process_time()
-            plan = module.plan(proxy, intrinsics, params, args.seed)
+            plan = plan_fn(proxy, intrinsics, params, args.seed)
             seconds = time.perf_counter() - t0
             record = {"scene": scene_name, "planner": planner_name, **plan_record(plan, seconds)}
             # CPU time of this process's threads: the machine is shared, wall time moves with it.
@@ -125,6 +128,8 @@ def main(argv=None) -> int:
             target_distance = float(cfg.survey.target_gsd_m) * intrinsics.focal_px
             forecast = predicted_coverage(proxy, plan.viewpoints, intrinsics, target_distance, settings)
             record.update({k: round(v, 1) for k, v in forecast.items()})
+            flight = flight_summary(plan.viewpoints, DroneSettings.from_config(cfg.drone))
+            record["flight_time_min"] = round(flight["flight_time_s"] / 60.0, 1)
             records.append(record)
             extras = {
                 k: v for k, v in record.items() if k not in ("scene", "planner", "n_images", "plan_time_s")
@@ -135,7 +140,7 @@ def main(argv=None) -> int:
                 flush=True,
             )
     print(
-        "\nscene      planner    images  plan_s   cpu_s  objective initial -> final"
+        "\nscene      planner           images  plan_s   cpu_s  flight min  objective initial -> final"
         "   3 good views (%): walls roofs ground"
     )
     for r in records:
@@ -146,8 +151,8 @@ def main(argv=None) -> int:
             f"{r.get(f'predicted_well_observed_{c}_pct', float('nan')):5.1f}"
             for c in ("walls", "roofs", "ground")
         )
-        row = f"{r['scene']:10s} {r['planner']:9s} {r['n_images']:7d}"
-        row += f" {r['plan_time_s']:7.1f} {r['plan_cpu_s']:7.1f}"
+        row = f"{r['scene']:10s} {r['planner']:16s} {r['n_images']:7d}"
+        row += f" {r['plan_time_s']:7.1f} {r['plan_cpu_s']:7.1f} {r['flight_time_min']:11.1f}"
         print(f"{row}  {objective}                   {shares}")
     if args.json:
         write_json_atomic(args.json, records)
