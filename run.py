@@ -22,6 +22,8 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
+from reconstruct.timing import cpu_seconds
+
 log = logging.getLogger("run")
 
 
@@ -145,11 +147,12 @@ def main(cfg: DictConfig) -> None:
     from evaluate.record import code_revision, write_metrics
 
     code_revision()  # before the stages import their code
-    start = time.perf_counter()
+    start, cpu_start = time.perf_counter(), cpu_seconds()
     try:
         run_cell(cfg, run_dir, record)
     except Exception as exc:
         record["cell_wall_time_s"] = time.perf_counter() - start
+        record["cell_cpu_time_s"] = cpu_seconds() - cpu_start
         failed_stage = record.pop("stage", "?")
         record.update(status="failed", failed_stage=failed_stage, error=f"{type(exc).__name__}: {exc}")
         record.update(getattr(exc, "record", {}) or {})
@@ -167,6 +170,7 @@ def main(cfg: DictConfig) -> None:
     record.pop("stage", None)
     record["status"] = "ok"
     record["cell_wall_time_s"] = time.perf_counter() - start  # proxy included unless it was cached
+    record["cell_cpu_time_s"] = cpu_seconds() - cpu_start  # process and children, every thread
     write_metrics(run_dir, record, cfg=OmegaConf.to_container(cfg, resolve=True))
     log.info("metrics: %s", run_dir / "metrics.json")
 

@@ -21,7 +21,8 @@ class StageTime:
     cpu_s: float = 0.0
 
 
-def _cpu_seconds() -> float:
+def cpu_seconds() -> float:
+    """CPU seconds so far of this process (every thread) and its waited-for children (user + system)."""
     t = os.times()
     return t.user + t.system + t.children_user + t.children_system
 
@@ -33,9 +34,9 @@ def stage_time() -> Iterator[StageTime]:
     Children count once they have been waited for (``os.times``), as every subprocess a stage runs is.
     """
     timing = StageTime()
-    wall, cpu = time.perf_counter(), _cpu_seconds()
+    wall, cpu = time.perf_counter(), cpu_seconds()
     try:
         yield timing
     finally:
         timing.wall_s = time.perf_counter() - wall
-        timing.cpu_s = _cpu_seconds() - cpu
+        timing.cpu_s = cpu_seconds() - cpu

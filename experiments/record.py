@@ -1,0 +1,199 @@
+"""Cell records in the repository, and a queue that runs cells one at a time and commits each record.
+
+A run directory (images, models, clouds: gigabytes) stays on the machine that ran it; its record,
+``metrics.json`` and ``plan/plan.json`` (kilobytes), is what the tables and figures are rebuilt from
+(``experiments.tables`` and ``experiments.figures`` read record folders like run directories). It
+lives in ``results/cells/<preset>/<scene>/<planner>/seed<k>/``.
+
+    python -m experiments.record study/default_v4/tomb/yan/seed0 --preset default [--commit]
+    python -m experiments.record --queue tomb/yan/0 church/ours/1 --preset default \\
+        --study study/default_v4 [--set reconstruct.keep_dense_workspace=false] [--force]
+
+``--queue`` runs each ``scene/planner/seed`` cell with ``run.py`` from a detached git worktree of
+HEAD (the committed code: editing the checkout while a cell runs cannot change it; the stage cache
+stays shared), into ``--study/<scene>/<planner>/seed<k>``, then records and commits that cell
+(``git commit -- <its record>``: nothing else staged is swept in) before it starts the next. A cell
+already recorded is skipped unless ``--force``. A failed cell's ``metrics.json`` is recorded too.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script from anywhere
+    sys.path.insert(0, str(ROOT))
+
+from experiments.runs import RunDirectoryError, read_metrics  # noqa: E402
+from scene.io import write_text_atomic  # noqa: E402
+
+RECORDS = ROOT / "results" / "cells"
+RECORD_FILES = {"metrics.json": "metrics.json", "plan.json": "plan/plan.json"}
+
+
+def record_dir(preset: str, scene: str, planner: str, seed: int, root: Path = RECORDS) -> Path:
+    """Where the record of one cell lives."""
+    return Path(root) / preset / scene / planner / f"seed{int(seed)}"
+
+
+def record_cell(run_dir: str | Path, preset: str, root: Path = RECORDS) -> tuple[Path, dict]:
+    """Copy a finished cell's ``metrics.json`` (and ``plan/plan.json`` when it has one) into its
+    record folder, each file atomically. Returns the folder and the metrics.
+
+    Raises:
+        RunDirectoryError: no ``metrics.json``, or one without scene, planner and seed.
+    """
+    run_dir = Path(run_dir)
+    metrics = read_metrics(run_dir)
+    missing = [k for k in ("scene", "planner", "seed") if k not in metrics]
+    if missing:
+        raise RunDirectoryError(f"{run_dir}/metrics.json: no {missing} (not a cell's record)")
+    dest = record_dir(preset, str(metrics["scene"]), str(metrics["planner"]), int(metrics["seed"]), root)
+    for name, source in RECORD_FILES.items():
+        path = run_dir / source
+        if path.is_file():
+            write_text_atomic(dest / name, path.read_text())
+    return dest, metrics
+
+
+def summary_line(metrics: dict) -> str:
+    """One line naming the cell and its headline figures (a commit message, a log line)."""
+    cell = f"{metrics.get('scene')} / {metrics.get('planner')} / seed {metrics.get('seed')}"
+    if metrics.get("status", "ok") != "ok":
+        stage, error = metrics.get("failed_stage", "?"), metrics.get("error", "")
+        return f"Cell record: {cell} failed in stage {stage}: {error}"[:300]
+
+    def number(key: str, scale: float = 1.0, fmt: str = ".1f") -> str:
+        value = metrics.get(key)
+        return "n/a" if value is None else format(float(value) * scale, fmt)
+
+    cpu = metrics.get("cell_cpu_time_s")
+    return (
+        f"Cell record: {cell}: {metrics.get('n_images')} images, {metrics.get('n_registered')} registered, "
+        f"acc90 {number('acc90_m', 100.0)} cm, completeness {number('comp_050')} % at 5 cm, "
+        f"cell {number('cell_wall_time_s', 1 / 60.0)} min"
+        + ("" if cpu is None else f" ({float(cpu) / 60.0:.1f} min CPU)")
+    )
+
+
+def commit_record(dest: Path, message: str, repo: Path = ROOT) -> None:
+    """Commit only the record folder ``dest`` (other staged or modified files stay as they are)."""
+    rel = os.path.relpath(dest, repo)
+    subprocess.run(["git", "-C", str(repo), "add", "--", rel], check=True)
+    subprocess.run(["git", "-C", str(repo), "commit", "-q", "-m", message, "--", rel], check=True)
+
+
+def parse_cell(text: str) -> tuple[str, str, int]:
+    """``scene/planner/seed`` -> (scene, planner, seed)."""
+    parts = text.split("/")
+    if len(parts) != 3 or not parts[2].isdigit():
+        raise ValueError(f"a cell is scene/planner/seed (e.g. tomb/yan/0), got {text!r}")
+    return parts[0], parts[1], int(parts[2])
+
+
+def run_queue(
+    cells: Sequence[tuple[str, str, int]],
+    preset: str,
+    study: Path,
+    overrides: Sequence[str] = (),
+    force: bool = False,
+    commit: bool = True,
+) -> int:
+    """Run the cells one after the other from a worktree of HEAD; record (and commit) each one.
+
+    Returns the number of cells that failed."""
+    head = subprocess.run(
+        ["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], check=True, capture_output=True, text=True
+    ).stdout.strip()
+    dirty = subprocess.run(
+        ["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no"],
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout.strip()
+    if dirty:
+        print(
+            f"note: the cells run the committed code at {head}; uncommitted changes are not in them",
+            flush=True,
+        )
+    failed = 0
+    with tempfile.TemporaryDirectory(prefix="uavplan_queue_") as tmp:
+        tree = Path(tmp) / "tree"
+        subprocess.run(
+            ["git", "-C", str(ROOT), "worktree", "add", "-q", "--detach", str(tree), head], check=True
+        )
+        try:
+            env = dict(os.environ, UAVPLAN_CACHE=str(ROOT / "cache"), PYTHONPATH=str(tree))
+            for scene, planner, seed in cells:
+                if record_dir(preset, scene, planner, seed).joinpath("metrics.json").is_file() and not force:
+                    print(f"{scene}/{planner}/{seed}: recorded already (--force runs it again)", flush=True)
+                    continue
+                run_dir = (Path(study) / scene / planner / f"seed{seed}").resolve()
+                command = [
+                    sys.executable,
+                    "run.py",
+                    f"scene={scene}",
+                    f"planner={planner}",
+                    f"seed={seed}",
+                    f"hydra.run.dir={run_dir}",
+                    *overrides,
+                ]
+                print(f"{scene}/{planner}/{seed}: running at {head} into {run_dir}", flush=True)
+                code = subprocess.run(command, cwd=tree, env=env).returncode
+                if not (run_dir / "metrics.json").is_file():
+                    print(
+                        f"{scene}/{planner}/{seed}: exit {code} and no metrics.json: nothing recorded",
+                        flush=True,
+                    )
+                    failed += 1
+                    continue
+                dest, metrics = record_cell(run_dir, preset)
+                failed += metrics.get("status", "ok") != "ok"
+                line = summary_line(metrics) + f" (code {head})"
+                print(line, flush=True)
+                if commit:
+                    commit_record(dest, line)
+        finally:
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False)
+    return failed
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run_dirs", nargs="*", type=Path, help="finished run directories to record")
+    parser.add_argument("--preset", default="default", help="record folder under results/cells/")
+    parser.add_argument("--commit", action="store_true", help="commit each record (always with --queue)")
+    parser.add_argument("--queue", nargs="+", metavar="SCENE/PLANNER/SEED", help="cells to run, in order")
+    parser.add_argument(
+        "--study", type=Path, default=Path("study") / "default", help="run directories of --queue"
+    )
+    parser.add_argument("--set", action="append", default=[], help="a run.py override for every queued cell")
+    parser.add_argument("--force", action="store_true", help="run queued cells that are recorded already")
+    args = parser.parse_args(argv)
+    try:
+        if args.queue:
+            cells = [parse_cell(c) for c in args.queue]
+            return 1 if run_queue(cells, args.preset, args.study, args.set, args.force) else 0
+        if not args.run_dirs:
+            parser.error("give run directories to record, or --queue")
+        for run_dir in args.run_dirs:
+            dest, metrics = record_cell(run_dir, args.preset)
+            line = summary_line(metrics)
+            print(f"{line}\n  -> {dest}")
+            if args.commit:
+                commit_record(dest, line)
+    except (RunDirectoryError, ValueError, json.JSONDecodeError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,83 @@
+"""Cell records: copied into results/cells/<preset>/..., summarised, committed alone."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+
+import pytest
+
+from experiments.record import commit_record, parse_cell, record_cell, record_dir, summary_line
+from experiments.runs import RunDirectoryError
+from tests.experiments_fixtures import square_plan, write_run
+
+
+def test_a_cell_record_holds_its_metrics_and_plan(tmp_path):
+    run = write_run(
+        tmp_path / "study",
+        "tomb",
+        "yan",
+        2,
+        plan=square_plan("yan"),
+        n_images=1343,
+        n_registered=1340,
+        acc90_m=0.0512,
+        comp_050=71.25,
+        cell_wall_time_s=7260.0,
+        cell_cpu_time_s=12600.0,
+    )
+    dest, metrics = record_cell(run, "default", root=tmp_path / "cells")
+    assert dest == record_dir("default", "tomb", "yan", 2, root=tmp_path / "cells")
+    assert dest == tmp_path / "cells" / "default" / "tomb" / "yan" / "seed2"
+    assert json.loads((dest / "metrics.json").read_text()) == json.loads((run / "metrics.json").read_text())
+    assert (dest / "plan.json").read_text() == (run / "plan" / "plan.json").read_text()
+    assert summary_line(metrics) == (
+        "Cell record: tomb / yan / seed 2: 1343 images, 1340 registered, acc90 5.1 cm, "
+        "completeness 71.2 % at 5 cm, cell 121.0 min (210.0 min CPU)"
+    )
+
+
+def test_a_failed_cell_is_recorded_with_its_error(tmp_path):
+    run = write_run(tmp_path, "church", "ours", 0, status="failed", error="no model", failed_stage="mapping")
+    dest, metrics = record_cell(run, "default", root=tmp_path / "cells")
+    assert not (dest / "plan.json").exists()
+    assert summary_line(metrics) == "Cell record: church / ours / seed 0 failed in stage mapping: no model"
+
+
+def test_no_metrics_no_record(tmp_path):
+    with pytest.raises(RunDirectoryError, match="metrics.json: not found"):
+        record_cell(tmp_path, "default", root=tmp_path / "cells")
+
+
+def test_commit_takes_the_record_and_nothing_else(tmp_path):
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run(["git", "init", "-q", str(repo)], check=True)
+    (repo / "code.py").write_text("x = 1\n")
+    subprocess.run([*git, "add", "code.py"], check=True)
+    subprocess.run([*git, "commit", "-qm", "code"], check=True)
+    (repo / "code.py").write_text("x = 2\n")  # an edit in progress, staged
+    subprocess.run([*git, "add", "code.py"], check=True)
+    run = write_run(tmp_path / "study", "tomb", "ours", 0, n_images=215)
+    dest, _ = record_cell(run, "default", root=repo / "results" / "cells")
+    env_git = ["git", "-C", str(repo)]
+    subprocess.run([*env_git, "config", "user.name", "t"], check=True)
+    subprocess.run([*env_git, "config", "user.email", "t@t"], check=True)
+    commit_record(dest, "Cell record: tomb / ours / seed 0", repo=repo)
+    shown = subprocess.run(
+        [*env_git, "show", "--name-only", "--format=%s", "HEAD"], capture_output=True, text=True
+    )
+    lines = [line for line in shown.stdout.splitlines() if line]
+    assert lines == [
+        "Cell record: tomb / ours / seed 0",
+        "results/cells/default/tomb/ours/seed0/metrics.json",
+    ]
+    staged = subprocess.run([*env_git, "diff", "--cached", "--name-only"], capture_output=True, text=True)
+    assert staged.stdout.split() == ["code.py"]  # the edit stays staged, uncommitted
+
+
+def test_cells_are_scene_planner_seed():
+    assert parse_cell("tomb/yan/0") == ("tomb", "yan", 0)
+    with pytest.raises(ValueError, match="scene/planner/seed"):
+        parse_cell("tomb/yan")
