@@ -159,7 +159,9 @@ def refine_clusters(
         if settings.popsize:
             opts["popsize"] = int(settings.popsize)
         es = cma.CMAEvolutionStrategy(x0, float(settings.sigma0), opts)
-        current_cost = 0.0 if time_term is None else float(time_term.cost(viewpoints[order]))
+        # The ordered set before this cluster moves: its cost, and the base its alternatives edit.
+        ordered = None if time_term is None else viewpoints[order]
+        current_cost = 0.0 if time_term is None else float(time_term.cost(ordered))
         best_r, best_vps, best_obs = state.R - current_cost, None, None
         npr = np.full(m, bool(point_rows))
         while not es.stop():
@@ -175,7 +177,7 @@ def refine_clusters(
                 prop = state.evaluate(cluster, obs, len(feasible), new_point_rows=npr)
                 value = prop.R
                 if time_term is not None:
-                    sets = np.repeat(viewpoints[order][None], len(feasible), axis=0)
+                    sets = np.repeat(ordered[None], len(feasible), axis=0)
                     sets[:, slot[cluster]] = cand[feasible]
                     value = value - time_term.cost(sets)
                 fitness[feasible] = -value
