@@ -22,6 +22,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
+from planner.budget import DEFAULT_LEVEL, apply_budget
 from reconstruct.timing import cpu_seconds
 
 log = logging.getLogger("run")
@@ -53,16 +54,38 @@ def obtain_proxy(scene, intrinsics, cfg: DictConfig, record: dict):
     return proxy
 
 
-def planner_params(cfg: DictConfig) -> DictConfig:
-    """The planner's parameters with the experiment preset's overrides for this planner merged in.
+def scene_label(cfg: DictConfig) -> str:
+    """The scene's name in records: its config's name, or for ``scene=mesh`` the mesh file's stem
+    (``scene.path=cache/meshes/hall.glb`` -> ``hall``), so two users' meshes are two scenes."""
+    path = OmegaConf.select(cfg, "scene.path", default=None) if cfg.scene.name == "mesh" else None
+    return Path(str(path)).stem if path else str(cfg.scene.name)
 
-    Presets (conf/experiment/*.yaml) carry ``experiment.planner_overrides.<planner name>``, because
-    each planner has parameters of its own.
+
+def planner_setup(cfg: DictConfig) -> tuple[DictConfig, dict]:
+    """The planner's parameters, and the budget record (``budget``, ``budget_knob``, ``budget_value``).
+
+    The experiment preset's overrides for this planner are merged in first: presets
+    (conf/experiment/*.yaml) carry ``experiment.planner_overrides.<planner name>``, because each
+    planner has parameters of its own. Then ``budget=<level>`` sets the planner's budget knob
+    (``planner.budget``); the config-only keys (``name``, ``_target_``, ``budget``) are dropped.
+
+    Raises:
+        ValueError: a budget level the planner does not define.
     """
     overrides = OmegaConf.select(cfg, f"experiment.planner_overrides.{cfg.planner.name}")
     # Resolved first: planner settings interpolate run-level values (``${survey.target_gsd_m}``).
     params = OmegaConf.create(OmegaConf.to_container(cfg.planner, resolve=True))
-    return OmegaConf.merge(params, overrides) if overrides else params
+    if overrides:
+        params = OmegaConf.merge(params, overrides)
+    params, budget = apply_budget(
+        OmegaConf.to_container(params, resolve=True), str(cfg.get("budget", DEFAULT_LEVEL)), cfg.planner.name
+    )
+    return OmegaConf.create(params), budget
+
+
+def planner_params(cfg: DictConfig) -> DictConfig:
+    """The parameters ``plan`` receives (``planner_setup`` without the budget record)."""
+    return planner_setup(cfg)[0]
 
 
 def run_cell(cfg: DictConfig, run_dir: Path, record: dict) -> None:
@@ -78,6 +101,10 @@ def run_cell(cfg: DictConfig, run_dir: Path, record: dict) -> None:
     from scene.plan import write_plan
     from scene.registry import load_scene
 
+    record["stage"] = "config"
+    params, budget = planner_setup(cfg)  # a bad budget level fails here, not after the proxy
+    record.update(budget)
+
     record["stage"] = "scene"
     drone = DroneSettings.from_config(OmegaConf.to_container(cfg.drone, resolve=True))
     scene = load_scene(cfg.scene, cache_dir=cfg.cache_dir)
@@ -89,7 +116,7 @@ def run_cell(cfg: DictConfig, run_dir: Path, record: dict) -> None:
     record["stage"] = "plan"
     plan_fn = hydra.utils.get_method(cfg.planner._target_)
     start = time.perf_counter()
-    plan = plan_fn(proxy, intrinsics, planner_params(cfg), cfg.seed)
+    plan = plan_fn(proxy, intrinsics, params, cfg.seed)
     record["plan_time_s"] = time.perf_counter() - start
     validate_plan(plan, proxy, drone)  # whoever made it: nothing unflyable is rendered
     settings = EvaluationSettings.from_config(cfg.evaluate)
@@ -137,9 +164,11 @@ def run_cell(cfg: DictConfig, run_dir: Path, record: dict) -> None:
 def main(cfg: DictConfig) -> None:
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     record = {
-        "scene": cfg.scene.name,
+        "scene": scene_label(cfg),
+        "scene_config": cfg.scene.name,
         "planner": cfg.planner.name,
         "seed": int(cfg.seed),
+        "budget": str(cfg.get("budget", DEFAULT_LEVEL)),
         "experiment": cfg.experiment.name,
         "status": "running",
     }

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 import platform
 import subprocess
 from collections.abc import Mapping
@@ -38,6 +39,22 @@ def library_versions() -> dict:
             version = None
         versions[f"{name.split('-')[0]}_version"] = version
     return versions
+
+
+@functools.cache
+def machine_info() -> dict:
+    """``{"machine_cpu": <model name>, "machine_cpus": <logical CPUs this process may use>}``: what
+    the timings of a record were measured on."""
+    model = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return {"machine_cpu": model, "machine_cpus": cpus}
 
 
 @functools.cache
@@ -83,7 +100,8 @@ def run_identity(cfg: Mapping | None) -> dict:
 
 def write_metrics(run_dir: str | Path, record: Mapping, cfg: Mapping | None = None) -> Path:
     """Write ``run_dir/metrics.json`` atomically: the flat ``record``, plus the config's
-    scene/planner/seed where the record lacks them, plus the library versions and the code revision.
+    scene/planner/seed where the record lacks them, plus the library versions, the machine and the
+    code revision.
 
     Args:
         run_dir: the run directory.
@@ -105,7 +123,7 @@ def write_metrics(run_dir: str | Path, record: Mapping, cfg: Mapping | None = No
         if not isinstance(key, str):
             raise TypeError(f"metrics record keys must be strings, got {key!r}")
         out[key] = _scalar(key, value)
-    for key, value in {**library_versions(), **code_revision()}.items():
+    for key, value in {**library_versions(), **machine_info(), **code_revision()}.items():
         out.setdefault(key, value)
     return write_json_atomic(Path(run_dir) / METRICS_FILE, out)
 

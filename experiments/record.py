@@ -3,15 +3,15 @@
 A run directory (images, models, clouds: gigabytes) stays on the machine that ran it; its record,
 ``metrics.json`` and ``plan/plan.json`` (kilobytes), is what the tables and figures are rebuilt from
 (``experiments.tables`` and ``experiments.figures`` read record folders like run directories). It
-lives in ``results/cells/<preset>/<scene>/<planner>/seed<k>/``.
+lives in ``results/cells/<preset>/<scene>/<planner>/<budget>/seed<k>/`` (budget: ``planner.budget``).
 
     python -m experiments.record study/default_v4/tomb/yan/seed0 --preset default [--commit]
-    python -m experiments.record --queue tomb/yan/0 church/ours/1 --preset default \\
+    python -m experiments.record --queue tomb/yan/0 church/ours/1 tomb/ours/0/high --preset default \\
         --study study/default_v4 [--set reconstruct.keep_dense_workspace=false] [--force]
 
-``--queue`` runs each ``scene/planner/seed`` cell with ``run.py`` from a detached git worktree of
-HEAD (the committed code: editing the checkout while a cell runs cannot change it; the stage cache
-stays shared), into ``--study/<scene>/<planner>/seed<k>``, then records and commits that cell
+``--queue`` runs each ``scene/planner/seed[/budget]`` cell with ``run.py`` from a detached git worktree
+of HEAD (the committed code: editing the checkout while a cell runs cannot change it; the stage cache
+stays shared), into ``--study/<scene>/<planner>/<budget>/seed<k>``, then records and commits that cell
 (``git commit -- <its record>``: nothing else staged is swept in) before it starts the next. A cell
 already recorded is skipped unless ``--force``. A failed cell's ``metrics.json`` is recorded too.
 """
@@ -32,15 +32,24 @@ if str(ROOT) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(ROOT))
 
 from experiments.runs import RunDirectoryError, read_metrics  # noqa: E402
+from planner.budget import DEFAULT_LEVEL, level_rank  # noqa: E402
 from scene.io import write_text_atomic  # noqa: E402
 
 RECORDS = ROOT / "results" / "cells"
 RECORD_FILES = {"metrics.json": "metrics.json", "plan.json": "plan/plan.json"}
 
 
-def record_dir(preset: str, scene: str, planner: str, seed: int, root: Path = RECORDS) -> Path:
+def cell_path(scene: str, planner: str, seed: int, budget: str = DEFAULT_LEVEL) -> Path:
+    """``<scene>/<planner>/<budget>/seed<k>``: a cell's folder under a study or record root."""
+    level_rank(budget)
+    return Path(scene) / planner / budget / f"seed{int(seed)}"
+
+
+def record_dir(
+    preset: str, scene: str, planner: str, seed: int, budget: str = DEFAULT_LEVEL, root: Path = RECORDS
+) -> Path:
     """Where the record of one cell lives."""
-    return Path(root) / preset / scene / planner / f"seed{int(seed)}"
+    return Path(root) / preset / cell_path(scene, planner, seed, budget)
 
 
 def record_cell(run_dir: str | Path, preset: str, root: Path = RECORDS) -> tuple[Path, dict]:
@@ -55,7 +64,10 @@ def record_cell(run_dir: str | Path, preset: str, root: Path = RECORDS) -> tuple
     missing = [k for k in ("scene", "planner", "seed") if k not in metrics]
     if missing:
         raise RunDirectoryError(f"{run_dir}/metrics.json: no {missing} (not a cell's record)")
-    dest = record_dir(preset, str(metrics["scene"]), str(metrics["planner"]), int(metrics["seed"]), root)
+    budget = str(metrics.get("budget") or DEFAULT_LEVEL)
+    dest = record_dir(
+        preset, str(metrics["scene"]), str(metrics["planner"]), int(metrics["seed"]), budget, root
+    )
     for name, source in RECORD_FILES.items():
         path = run_dir / source
         if path.is_file():
@@ -65,7 +77,10 @@ def record_cell(run_dir: str | Path, preset: str, root: Path = RECORDS) -> tuple
 
 def summary_line(metrics: dict) -> str:
     """One line naming the cell and its headline figures (a commit message, a log line)."""
-    cell = f"{metrics.get('scene')} / {metrics.get('planner')} / seed {metrics.get('seed')}"
+    budget = metrics.get("budget") or DEFAULT_LEVEL
+    cell = f"{metrics.get('scene')} / {metrics.get('planner')} / seed {metrics.get('seed')}" + (
+        "" if budget == DEFAULT_LEVEL else f" / {budget} budget"
+    )
     if metrics.get("status", "ok") != "ok":
         stage, error = metrics.get("failed_stage", "?"), metrics.get("error", "")
         return f"Cell record: {cell} failed in stage {stage}: {error}"[:300]
@@ -90,16 +105,20 @@ def commit_record(dest: Path, message: str, repo: Path = ROOT) -> None:
     subprocess.run(["git", "-C", str(repo), "commit", "-q", "-m", message, "--", rel], check=True)
 
 
-def parse_cell(text: str) -> tuple[str, str, int]:
-    """``scene/planner/seed`` -> (scene, planner, seed)."""
+def parse_cell(text: str) -> tuple[str, str, int, str]:
+    """``scene/planner/seed[/budget]`` -> (scene, planner, seed, budget); budget ``default`` if absent."""
     parts = text.split("/")
-    if len(parts) != 3 or not parts[2].isdigit():
-        raise ValueError(f"a cell is scene/planner/seed (e.g. tomb/yan/0), got {text!r}")
-    return parts[0], parts[1], int(parts[2])
+    if len(parts) not in (3, 4) or not parts[2].isdigit():
+        raise ValueError(
+            f"a cell is scene/planner/seed[/budget] (e.g. tomb/yan/0, tomb/ours/0/high), got {text!r}"
+        )
+    budget = parts[3] if len(parts) == 4 else DEFAULT_LEVEL
+    level_rank(budget)
+    return parts[0], parts[1], int(parts[2]), budget
 
 
 def run_queue(
-    cells: Sequence[tuple[str, str, int]],
+    cells: Sequence[tuple[str, str, int, str]],
     preset: str,
     study: Path,
     overrides: Sequence[str] = (),
@@ -131,27 +150,27 @@ def run_queue(
         )
         try:
             env = dict(os.environ, UAVPLAN_CACHE=str(ROOT / "cache"), PYTHONPATH=str(tree))
-            for scene, planner, seed in cells:
-                if record_dir(preset, scene, planner, seed).joinpath("metrics.json").is_file() and not force:
-                    print(f"{scene}/{planner}/{seed}: recorded already (--force runs it again)", flush=True)
+            for scene, planner, seed, budget in cells:
+                name = f"{scene}/{planner}/{seed}" + ("" if budget == DEFAULT_LEVEL else f"/{budget}")
+                recorded = record_dir(preset, scene, planner, seed, budget) / "metrics.json"
+                if recorded.is_file() and not force:
+                    print(f"{name}: recorded already (--force runs it again)", flush=True)
                     continue
-                run_dir = (Path(study) / scene / planner / f"seed{seed}").resolve()
+                run_dir = (Path(study) / cell_path(scene, planner, seed, budget)).resolve()
                 command = [
                     sys.executable,
                     "run.py",
                     f"scene={scene}",
                     f"planner={planner}",
                     f"seed={seed}",
+                    f"budget={budget}",
                     f"hydra.run.dir={run_dir}",
                     *overrides,
                 ]
-                print(f"{scene}/{planner}/{seed}: running at {head} into {run_dir}", flush=True)
+                print(f"{name}: running at {head} into {run_dir}", flush=True)
                 code = subprocess.run(command, cwd=tree, env=env).returncode
                 if not (run_dir / "metrics.json").is_file():
-                    print(
-                        f"{scene}/{planner}/{seed}: exit {code} and no metrics.json: nothing recorded",
-                        flush=True,
-                    )
+                    print(f"{name}: exit {code} and no metrics.json: nothing recorded", flush=True)
                     failed += 1
                     continue
                 dest, metrics = record_cell(run_dir, preset)
@@ -170,7 +189,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("run_dirs", nargs="*", type=Path, help="finished run directories to record")
     parser.add_argument("--preset", default="default", help="record folder under results/cells/")
     parser.add_argument("--commit", action="store_true", help="commit each record (always with --queue)")
-    parser.add_argument("--queue", nargs="+", metavar="SCENE/PLANNER/SEED", help="cells to run, in order")
+    parser.add_argument(
+        "--queue", nargs="+", metavar="SCENE/PLANNER/SEED[/BUDGET]", help="cells to run, in order"
+    )
     parser.add_argument(
         "--study", type=Path, default=Path("study") / "default", help="run directories of --queue"
     )

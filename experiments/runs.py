@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from planner.budget import DEFAULT_LEVEL, level_rank
 from scene.camera import Intrinsics
 
 log = logging.getLogger(__name__)
@@ -65,6 +66,11 @@ class Run:
         return int(self.metrics["seed"])
 
     @property
+    def budget(self) -> str:
+        """Image budget level (``planner.budget``); runs that predate budgets ran at ``default``."""
+        return str(self.metrics.get("budget") or DEFAULT_LEVEL)
+
+    @property
     def ok(self) -> bool:
         """True when the run recorded ``status: ok`` (or no status); any other status counts as failed."""
         return self.metrics.get("status", "ok") == "ok"
@@ -75,9 +81,11 @@ class Run:
         return "" if self.ok else str(self.metrics.get("error") or "unknown error")
 
 
-def method_name(planner: str) -> str:
-    """Display name of a planner (``smith`` -> ``Smith et al.``); unknown names are title-cased."""
-    return METHOD_NAMES.get(planner, planner.replace("_", " ").title())
+def method_name(planner: str, budget: str = DEFAULT_LEVEL) -> str:
+    """Display name of a planner (``smith`` -> ``Smith et al.``); unknown names are title-cased; a
+    budget other than the default is named after it (``Smith et al. (high budget)``)."""
+    name = METHOD_NAMES.get(planner, planner.replace("_", " ").title())
+    return name if budget == DEFAULT_LEVEL else f"{name} ({budget} budget)"
 
 
 def scene_name(scene: str) -> str:
@@ -164,7 +172,7 @@ def _config_name(config, key: str) -> str | None:
 def load_runs(paths: Iterable[str | Path]) -> list[Run]:
     """Every run at or below each of ``paths``, one per (scene, planner, seed), in table order.
 
-    When the same (scene, planner, seed) occurs in several directories (a re-run), the one whose
+    When the same (scene, planner, budget, seed) occurs in several directories (a re-run), the one whose
     ``metrics.json`` is newest is kept and the others are logged: repeating a seed is not a new sample.
 
     Raises:
@@ -177,15 +185,23 @@ def load_runs(paths: Iterable[str | Path]) -> list[Run]:
     for path in paths:
         for run_dir in find_run_dirs(path):
             run = Run(run_dir.resolve(), read_metrics(run_dir))
-            key = (run.scene, run.planner, run.seed)
+            key = (run.scene, run.planner, run.budget, run.seed)
             if key in by_key and by_key[key].run_dir != run.run_dir:
                 kept, dropped = sorted([by_key[key], run], key=_metrics_mtime, reverse=True)
-                log.warning("%s/%s seed %d: using %s, ignoring older %s", *key, kept.run_dir, dropped.run_dir)
+                log.warning(
+                    "%s/%s (%s budget) seed %d: using %s, ignoring older %s",
+                    *key,
+                    kept.run_dir,
+                    dropped.run_dir,
+                )
                 run = kept
             by_key[key] = run
-    return sorted(
-        by_key.values(), key=lambda r: (scene_sort_key(r.scene), method_sort_key(r.planner), r.seed)
-    )
+    return sorted(by_key.values(), key=run_sort_key)
+
+
+def run_sort_key(run: Run) -> tuple:
+    """Table order: scene, method, budget (fewest images first), seed."""
+    return (scene_sort_key(run.scene), method_sort_key(run.planner), level_rank(run.budget), run.seed)
 
 
 def _metrics_mtime(run: Run) -> float:
@@ -202,7 +218,8 @@ def runs_frame(runs: Iterable[Run]) -> pd.DataFrame:
         row = {
             "scene": run.scene,
             "planner": run.planner,
-            "method": method_name(run.planner),
+            "method": method_name(run.planner, run.budget),
+            "budget": run.budget,
             "seed": run.seed,
             "status": "ok" if run.ok else "failed",
             "error": run.error,

@@ -38,6 +38,7 @@ from experiments.runs import (
     scene_name,
     scene_sort_key,
 )
+from planner.budget import DEFAULT_LEVEL, level_rank
 from scene.io import write_text_atomic
 
 log = logging.getLogger(__name__)
@@ -51,6 +52,7 @@ NOTE_MAX_CHARS = 240
 SUMMARY_COLUMNS = (
     "scene",
     "planner",
+    "budget",
     "method",
     "metric",
     "label",
@@ -166,7 +168,7 @@ TABLE_SURFACES_CAPTION = (
 def summarise(
     runs: pd.DataFrame, specs: Sequence[MetricSpec], noise_floor: Mapping[str, float] | None = None
 ) -> pd.DataFrame:
-    """Mean, spread and best flag of each metric per (scene, planner), in table order.
+    """Mean, spread and best flag of each metric per (scene, planner, budget), in table order.
 
     Args:
         runs: one row per run (``experiments.runs.runs_frame``): scene, planner, method, seed,
@@ -176,7 +178,8 @@ def summarise(
             a value closer to the best than this is a tie and marked best too. None: exact ties only.
 
     Returns:
-        A tidy frame with ``SUMMARY_COLUMNS``: one row per (scene, planner, metric). ``mean`` and
+        A tidy frame with ``SUMMARY_COLUMNS``: one row per (scene, planner, budget, metric); the
+        method name carries a budget other than the default. ``mean`` and
         ``std`` (sample, ddof 1; NaN below two runs) are in the shown unit over the successful runs
         with a finite value, ``n`` counts them, ``n_runs``/``n_failed`` count the group's runs and
         failures, ``errors`` lists the failed seeds' errors, ``best`` marks the best shown value of
@@ -187,11 +190,13 @@ def summarise(
     if missing:
         raise ValueError(f"run records lack {sorted(missing)}")
     rows = []
+    if "budget" not in runs:  # records that predate budgets ran at the default one
+        runs = runs.assign(budget=DEFAULT_LEVEL)
     groups = sorted(
-        runs.groupby(["scene", "planner"], sort=False),
-        key=lambda g: (scene_sort_key(g[0][0]), method_sort_key(g[0][1])),
+        runs.groupby(["scene", "planner", "budget"], sort=False),
+        key=lambda g: (scene_sort_key(g[0][0]), method_sort_key(g[0][1]), level_rank(g[0][2])),
     )
-    for (scene, planner), group in groups:
+    for (scene, planner, budget), group in groups:
         ok = group[group["status"] == "ok"]
         failed = group[group["status"] != "ok"]
         errors = _error_summary(failed)
@@ -206,6 +211,7 @@ def summarise(
                 {
                     "scene": scene,
                     "planner": planner,
+                    "budget": budget,
                     "method": method,
                     "metric": spec.column,
                     "label": spec.label,
@@ -282,7 +288,7 @@ def read_summary_csv(path: str | Path) -> pd.DataFrame:
     frame = frame[list(SUMMARY_COLUMNS)]
     frame = frame.astype({"mean": float, "std": float, "n": int, "n_runs": int, "n_failed": int})
     frame["best"] = frame["best"].astype(str).str.lower() == "true"
-    for column in ("scene", "planner", "method", "metric", "label", "errors"):
+    for column in ("scene", "planner", "budget", "method", "metric", "label", "errors"):
         frame[column] = frame[column].astype(str)
     return frame
 
@@ -301,14 +307,14 @@ class _Cell:
 
 
 class _Layout:
-    """Rows (scene, planner) of a table with their shown cells and footnote markers."""
+    """Rows (scene, planner, budget) of a table with their shown cells and footnote markers."""
 
     def __init__(self, summary: pd.DataFrame, specs: Sequence[MetricSpec]):
         self.specs = list(specs)
         self.show_runs = bool((summary["n_runs"] > 1).any())
         self.rows: list[dict] = []
         self.notes: list[tuple[str, str]] = []
-        for (scene, planner), cells in summary.groupby(["scene", "planner"], sort=False):
+        for (scene, planner, _), cells in summary.groupby(["scene", "planner", "budget"], sort=False):
             by_metric = {row.metric: row for row in cells.itertuples()}
             first = cells.iloc[0]
             marker = ""
@@ -472,7 +478,13 @@ def build_tables(
     Raises:
         RunDirectoryError: a path holds no run or a run breaks the contract.
     """
-    runs = runs_frame(load_runs(run_paths))
+    return tables_from_runs(runs_frame(load_runs(run_paths)), noise_floor)
+
+
+def tables_from_runs(
+    runs: pd.DataFrame, noise_floor: Mapping[str, float] | None = None
+) -> dict[str, pd.DataFrame]:
+    """``build_tables`` on a per-run frame (``experiments.runs.runs_frame``) already loaded."""
     ours_variants = runs[runs["planner"].astype(str).str.match(r"^ours(_|$)")]
     ablation = (
         summarise(ours_variants, TABLE_ABLATION, noise_floor)
@@ -522,7 +534,11 @@ def code_provenance(runs: pd.DataFrame) -> tuple[str, bool]:
     ]
     uncertain = labels.nunique() > 1 or not known.all() or (dirty == True).any()  # noqa: E712
     if labels.nunique() == 1:
-        text = f"**Code.** All {len(runs)} runs: revision {labels.iloc[0]}."
+        text = (
+            f"**Code.** All {len(runs)} runs: revision {labels.iloc[0]}."
+            if len(runs) > 1
+            else f"**Code.** The run: revision {labels.iloc[0]}."
+        )
     else:
         parts = [
             f"{label} ({len(index)}: {', '.join(cells[i] for i in runs.index.get_indexer(index))})"

@@ -1,6 +1,6 @@
 """An interactive 3-D view of a plan as ONE self-contained HTML file (opens offline in any browser).
 
-    python -m experiments.viewer outputs/tomb/ours/seed0/2026-11-23_06-00-00 --out plan.html
+    python -m experiments.viewer outputs/tomb/ours/default/seed0/2026-11-23_06-00-00 --out plan.html
 
 shows the viewpoints (coloured by kind, hover for index, pose and kind), each camera's frustum
 (from the run's intrinsics), the trajectory in flight order and the ground-truth or proxy mesh,

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
+from planner.budget import CONFIG_KEYS
 from scene.plan import Plan, PlanningError
 
 __all__ = ["Plan", "PlanningError", "merge_params"]
@@ -18,11 +19,11 @@ __all__ = ["Plan", "PlanningError", "merge_params"]
 def merge_params(planner: str, defaults: Mapping, params: Mapping | None) -> dict:
     """``defaults`` overridden by a planner config's flat ``params``; an unknown key is an error.
 
-    ``name`` and ``_target_`` (the Hydra registry keys) are ignored.
+    ``name``, ``_target_`` (the Hydra registry keys) and ``budget`` (``planner.budget``) are ignored.
     """
     merged = dict(defaults)
     if params:
-        unknown = sorted(set(params) - set(defaults) - {"name", "_target_"})
+        unknown = sorted(set(params) - set(defaults) - set(CONFIG_KEYS))
         if unknown:
             raise ValueError(f"{planner}: unknown parameter(s) {unknown}; known: {sorted(defaults)}")
         merged.update({k: v for k, v in params.items() if k in defaults})

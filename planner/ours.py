@@ -27,6 +27,7 @@ import trimesh
 from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
+from planner.budget import CONFIG_KEYS
 from planner.candidates import (
     CandidateSettings,
     FlightLimits,
@@ -48,16 +49,15 @@ from scene.plan import Plan, PlanningError
 
 def _yaml_defaults() -> dict:
     """``conf/planner/ours.yaml`` (the one place ours' settings and their reasons live), with the
-    shared target GSD taken from ``conf/config.yaml``; Hydra's ``name`` and ``_target_`` dropped."""
+    shared target GSD taken from ``conf/config.yaml``; the config-only keys
+    (``planner.budget.CONFIG_KEYS``) dropped."""
     from omegaconf import OmegaConf
 
     conf = Path(__file__).resolve().parents[1] / "conf"
     survey = OmegaConf.load(conf / "config.yaml").survey
     merged = OmegaConf.create({"survey": survey, "ours": OmegaConf.load(conf / "planner" / "ours.yaml")})
     out = OmegaConf.to_container(merged.ours, resolve=True)
-    out.pop("name")
-    out.pop("_target_")
-    return out
+    return {k: v for k, v in out.items() if k not in CONFIG_KEYS}
 
 
 DEFAULTS: dict = _yaml_defaults()
@@ -77,7 +77,7 @@ def resolve_params(params: Mapping | None) -> dict:
 
     def merge(dst: dict, src: Mapping, prefix: str) -> None:
         for key, value in src.items():
-            if key in ("name", "_target_") and not prefix:
+            if key in CONFIG_KEYS and not prefix:
                 continue
             if key not in dst:
                 raise PlanningError(f"planner ours: unknown setting {prefix}{key}")

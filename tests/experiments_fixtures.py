@@ -22,8 +22,9 @@ def write_run(
     camera: dict | None = None,
     **metrics,
 ) -> Path:
-    """A run directory ``root/<scene>/<planner>/seed<N>`` with metrics.json (+ plan and config if given)."""
-    run_dir = root / scene / planner / f"seed{seed}"
+    """A run directory ``root/<scene>/<planner>/seed<N>`` (``.../<planner>/<budget>/seed<N>`` when the
+    metrics name a budget) with metrics.json (+ plan and config if given)."""
+    run_dir = root / scene / planner / metrics.get("budget", "") / f"seed{seed}"
     run_dir.mkdir(parents=True)
     record = {
         "scene": scene,

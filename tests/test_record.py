@@ -28,7 +28,7 @@ def test_a_cell_record_holds_its_metrics_and_plan(tmp_path):
     )
     dest, metrics = record_cell(run, "default", root=tmp_path / "cells")
     assert dest == record_dir("default", "tomb", "yan", 2, root=tmp_path / "cells")
-    assert dest == tmp_path / "cells" / "default" / "tomb" / "yan" / "seed2"
+    assert dest == tmp_path / "cells" / "default" / "tomb" / "yan" / "default" / "seed2"
     assert json.loads((dest / "metrics.json").read_text()) == json.loads((run / "metrics.json").read_text())
     assert (dest / "plan.json").read_text() == (run / "plan" / "plan.json").read_text()
     assert summary_line(metrics) == (
@@ -71,13 +71,23 @@ def test_commit_takes_the_record_and_nothing_else(tmp_path):
     lines = [line for line in shown.stdout.splitlines() if line]
     assert lines == [
         "Cell record: tomb / ours / seed 0",
-        "results/cells/default/tomb/ours/seed0/metrics.json",
+        "results/cells/default/tomb/ours/default/seed0/metrics.json",
     ]
     staged = subprocess.run([*env_git, "diff", "--cached", "--name-only"], capture_output=True, text=True)
     assert staged.stdout.split() == ["code.py"]  # the edit stays staged, uncommitted
 
 
-def test_cells_are_scene_planner_seed():
-    assert parse_cell("tomb/yan/0") == ("tomb", "yan", 0)
+def test_cells_are_scene_planner_seed_and_budget():
+    assert parse_cell("tomb/yan/0") == ("tomb", "yan", 0, "default")
+    assert parse_cell("tomb/ours/2/high") == ("tomb", "ours", 2, "high")
     with pytest.raises(ValueError, match="scene/planner/seed"):
         parse_cell("tomb/yan")
+    with pytest.raises(ValueError, match="budget must be one of"):
+        parse_cell("tomb/yan/0/huge")
+
+
+def test_a_budget_cell_has_its_own_record_and_name(tmp_path):
+    run = write_run(tmp_path / "study", "tomb", "ours", 1, n_images=402, budget="high")
+    dest, metrics = record_cell(run, "study", root=tmp_path / "cells")
+    assert dest == tmp_path / "cells" / "study" / "tomb" / "ours" / "high" / "seed1"
+    assert summary_line(metrics).startswith("Cell record: tomb / ours / seed 1 / high budget: 402 images")

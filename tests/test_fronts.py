@@ -1,0 +1,123 @@
+"""Quality-per-image fronts on constructed metrics whose answers are known."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from experiments.fronts import cost_to_reach, front_points, front_table, plot_fronts, value_at
+
+IMAGES = [100, 200, 400]
+COMP = [40.0, 60.0, 80.0]
+
+
+@pytest.mark.parametrize(
+    ("level", "cost", "at_most"),
+    [
+        (50.0, 150.0, False),
+        (80.0, 400.0, False),
+        (70.0, 300.0, False),
+        (30.0, 100.0, True),
+        (40.0, 100.0, True),
+    ],
+)
+def test_images_to_reach_interpolate_between_the_bracketing_budgets(level, cost, at_most):
+    reach = cost_to_reach(IMAGES, COMP, level)
+    assert reach.cost == pytest.approx(cost) and reach.at_most is at_most
+
+
+def test_a_level_above_the_front_is_not_reached_and_a_dip_is_not_a_crossing():
+    assert not cost_to_reach(IMAGES, COMP, 90.0).reached
+    assert cost_to_reach(IMAGES, COMP, 90.0).text() == "not reached"
+    # 70 is first reached on the way to 200 images; the dip to 65 at 400 images does not count again
+    dip = ([100, 200, 400, 800], [40.0, 70.0, 65.0, 90.0])
+    assert cost_to_reach(*dip, 68.0).cost == pytest.approx(100 + 28 / 30 * 100)
+    assert cost_to_reach(*dip, 80.0).cost == pytest.approx(400 + 15 / 25 * 400)
+    assert cost_to_reach(IMAGES, COMP, 30.0).text() == "≤ 100"
+
+
+def test_values_at_equal_images_are_interpolated_inside_the_front_only():
+    assert value_at(IMAGES, COMP, 300) == pytest.approx(70.0)
+    assert value_at(IMAGES, COMP, 400) == pytest.approx(80.0)
+    assert value_at(IMAGES, COMP, 125) == pytest.approx(45.0)
+    assert math.isnan(value_at(IMAGES, COMP, 50)) and math.isnan(value_at(IMAGES, COMP, 800))
+    assert value_at([200], [55.0], 200) == 55.0
+    with pytest.raises(ValueError, match="as many costs as values"):
+        value_at([1, 2], [1.0], 1)
+
+
+def _runs() -> pd.DataFrame:
+    rows = []
+
+    def add(planner, budget, seed, images, comp, acc, minutes, status="ok"):
+        rows.append(
+            dict(
+                scene="tomb",
+                planner=planner,
+                budget=budget,
+                seed=seed,
+                status=status,
+                n_images=images,
+                comp_050=comp,
+                acc90_m=acc,
+                flight_time_s=minutes * 60.0,
+            )
+        )
+
+    # given out of order: the front must come back fewest images first
+    add("ours", "high", 0, 400, 80.0, 0.03, 40.0)
+    add("ours", "default", 0, 200, 58.0, 0.03, 20.0)
+    add("ours", "default", 1, 220, 62.0, 0.05, 22.0)
+    add("ours", "default", 2, 999, 99.0, 0.01, 99.0, status="failed")  # a failed seed counts for nothing
+    add("ours", "low", 0, 100, 40.0, 0.04, 10.0)
+    add("yan", "default", 0, 1000, 75.0, 0.05, 100.0)
+    add("yan", "low", 0, 300, 50.0, 0.06, 30.0)
+    return pd.DataFrame(rows)
+
+
+def test_front_points_average_seeds_per_budget_in_budget_order():
+    points = front_points(_runs())
+    ours = points[points["planner"] == "yan"].index.max() < points[points["planner"] == "ours"].index.min()
+    assert ours  # baselines before ours, as in the tables
+    mine = points[points["planner"] == "ours"]
+    assert list(mine["budget"]) == ["low", "default", "high"]
+    assert list(mine["n_images"]) == [100.0, 210.0, 400.0]
+    assert list(mine["comp_050"]) == [40.0, 60.0, 80.0]
+    assert mine["comp_050_std"].iloc[1] == pytest.approx(np.std([58.0, 62.0], ddof=1))
+    assert list(mine["n"]) == [1, 2, 1]
+
+
+def test_front_table_answers_the_study_questions():
+    table = front_table(front_points(_runs()), targets_pct=(50.0, 70.0, 80.0), at_images=(300, 800))
+    ours = table[table["planner"] == "ours"].iloc[0]
+    yan = table[table["planner"] == "yan"].iloc[0]
+    assert ours["images_to_50"] == pytest.approx(155.0)  # 100 + (50 - 40) / 20 * 110
+    assert ours["minutes_to_50"] == pytest.approx(15.5)
+    assert ours["images_to_80"] == pytest.approx(400.0)
+    assert yan["images_to_50"] == pytest.approx(300.0) and bool(yan["images_to_50_at_most"])
+    assert yan["images_to_70"] == pytest.approx(300 + 20 / 25 * 700)
+    assert math.isnan(yan["images_to_80"])
+    assert ours["comp_at_300"] == pytest.approx(60.0 + 90 / 190 * 20.0)
+    assert yan["comp_at_300"] == pytest.approx(50.0)
+    assert math.isnan(ours["comp_at_800"]) and yan["comp_at_800"] == pytest.approx(50 + 500 / 700 * 25)
+    assert ours["acc90_cm_at_300"] == pytest.approx(4.0 + 90 / 190 * (3.0 - 4.0))
+
+
+def _front_lines(ax) -> dict:
+    """Label -> the data line of each planner's error-bar plot on ``ax``."""
+    return {c.get_label(): c.lines[0] for c in ax.containers}
+
+
+def test_the_front_figure_joins_each_planner_in_budget_order():
+    points = front_points(_runs())
+    lines = _front_lines(plot_fronts(points, "n_images").axes[0])
+    assert list(lines["Ours"].get_xdata()) == [100.0, 210.0, 400.0]
+    assert list(lines["Ours"].get_ydata()) == [40.0, 60.0, 80.0]
+    assert list(lines["Yan et al."].get_xdata()) == [300.0, 1000.0]
+    accuracy = _front_lines(plot_fronts(points, "n_images").axes[1])  # second row, same scene
+    assert list(accuracy["Ours"].get_ydata()) == pytest.approx([4.0, 4.0, 3.0])
+    minutes = _front_lines(plot_fronts(points, "flight_time_s").axes[0])
+    assert list(minutes["Ours"].get_xdata()) == [10.0, 21.0, 40.0]
