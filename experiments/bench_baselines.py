@@ -13,6 +13,7 @@ shared, so compare times within one run.
     python experiments/bench_baselines.py                          # tomb church cathedral x all
     python experiments/bench_baselines.py --scenes tomb --planners smith yan --json out.json
     python experiments/bench_baselines.py --scenes tomb --planners yan --proxy cache/exploration/<key>
+    python experiments/bench_baselines.py --scenes tomb --planners ours yan --budgets low default high
 
 ``--proxy`` plans on a reconstructed proxy instead: an exploration cache entry of a run of that
 scene (``proxy_entry`` in its ``metrics.json``), with the exploratory cloud Yan's confidence reads.
@@ -36,13 +37,14 @@ KNOWN_PLANNERS = tuple(sorted(p.stem for p in (REPO / "conf" / "planner").glob("
 SCENES = ("tomb", "church", "cathedral")
 
 
-def compose(scene: str, planner: str):
-    """The composed run config for ``scene=<scene> planner=<planner>``."""
+def compose(scene: str, planner: str, budget: str = "default"):
+    """The composed run config for ``scene=<scene> planner=<planner> budget=<budget>``."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base=None):
-        return hydra_compose("config", overrides=[f"scene={scene}", f"planner={planner}"])
+        overrides = [f"scene={scene}", f"planner={planner}", f"budget={budget}"]
+        return hydra_compose("config", overrides=overrides)
 
 
 def plan_record(plan, seconds: float) -> dict:
@@ -70,6 +72,9 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", nargs="+", default=list(SCENES))
     parser.add_argument("--planners", nargs="+", default=list(PLANNERS), choices=KNOWN_PLANNERS)
+    parser.add_argument(
+        "--budgets", nargs="+", default=["default"], help="image budget levels (planner/budget.py)"
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, default=None, help="also write the records here")
     parser.add_argument(
@@ -87,6 +92,7 @@ def main(argv=None) -> int:
     from experiments.observations import predicted_coverage
     from mission.flight_time import DroneSettings, flight_summary
     from reconstruct.proxy import degraded_ground_truth
+    from run import planner_setup
     from scene.camera import Intrinsics
     from scene.io import write_json_atomic
     from scene.registry import load_scene
@@ -110,17 +116,24 @@ def main(argv=None) -> int:
             f"(scene + proxy {time.perf_counter() - t0:.1f} s)",
             flush=True,
         )
-        for planner_name in args.planners:
-            cfg = compose(scene_name, planner_name)
+        cells = [(p, b) for p in args.planners for b in args.budgets]
+        for planner_name, budget in cells:
+            cfg = compose(scene_name, planner_name, budget)
             intrinsics = Intrinsics(int(cfg.camera.width), int(cfg.camera.height), float(cfg.camera.hfov_deg))
-            params = OmegaConf.to_container(cfg.planner, resolve=True)
+            try:
+                params, budget_record = planner_setup(cfg)
+            except ValueError as exc:  # a level this planner does not define
+                print(f"  {planner_name} {budget}: {exc}", flush=True)
+                continue
+            params = OmegaConf.to_container(params)
             if "progress" in params:
                 params["progress"] = False
             plan_fn = get_method(cfg.planner._target_)
             t0, c0 = time.perf_counter(), time.process_time()
             plan = plan_fn(proxy, intrinsics, params, args.seed)
             seconds = time.perf_counter() - t0
-            record = {"scene": scene_name, "planner": planner_name, **plan_record(plan, seconds)}
+            label = planner_name if budget == "default" else f"{planner_name}@{budget}"
+            record = {"scene": scene_name, "planner": label, **budget_record, **plan_record(plan, seconds)}
             # CPU time of this process's threads: the machine is shared, wall time moves with it.
             record["plan_cpu_s"] = round(time.process_time() - c0, 1)
             # The same forecast run.py records for every planner (issue "Planner ours"'s count).
@@ -132,10 +145,12 @@ def main(argv=None) -> int:
             record["flight_time_min"] = round(flight["flight_time_s"] / 60.0, 1)
             records.append(record)
             extras = {
-                k: v for k, v in record.items() if k not in ("scene", "planner", "n_images", "plan_time_s")
+                k: v
+                for k, v in record.items()
+                if k not in ("scene", "planner", "n_images", "plan_time_s", "budget", "budget_knob")
             }
             print(
-                f"  {planner_name:9s} images {record['n_images']:5d}  plan {seconds:7.1f} s  "
+                f"  {label:16s} images {record['n_images']:5d}  plan {seconds:7.1f} s  "
                 + json.dumps(extras, default=float),
                 flush=True,
             )

@@ -13,7 +13,19 @@ from collections.abc import Mapping
 from planner.budget import CONFIG_KEYS
 from scene.plan import Plan, PlanningError
 
-__all__ = ["Plan", "PlanningError", "merge_params"]
+__all__ = ["Plan", "PlanningError", "merge_params", "plain_params"]
+
+
+def plain_params(params: Mapping | None) -> dict:
+    """A planner's parameters as plain containers: a Hydra DictConfig resolved and converted, any
+    other mapping copied at the top level, None as {}."""
+    try:
+        from omegaconf import DictConfig, OmegaConf
+    except ImportError:  # pragma: no cover - omegaconf ships with hydra
+        return dict(params or {})
+    if isinstance(params, DictConfig):
+        return OmegaConf.to_container(params, resolve=True)
+    return dict(params or {})
 
 
 def merge_params(planner: str, defaults: Mapping, params: Mapping | None) -> dict:

@@ -27,6 +27,7 @@ import trimesh
 from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
+from planner.base import plain_params
 from planner.budget import CONFIG_KEYS
 from planner.candidates import (
     CandidateSettings,
@@ -65,14 +66,7 @@ DEFAULTS: dict = _yaml_defaults()
 
 def resolve_params(params: Mapping | None) -> dict:
     """``DEFAULTS`` overridden by ``params`` (a Mapping or DictConfig); unknown keys are an error."""
-    if params is not None and not isinstance(params, dict):
-        try:
-            from omegaconf import DictConfig, OmegaConf
-
-            if isinstance(params, DictConfig):
-                params = OmegaConf.to_container(params, resolve=True)
-        except ImportError:  # pragma: no cover - omegaconf ships with hydra
-            pass
+    params = plain_params(params)
     out = copy.deepcopy(DEFAULTS)
 
     def merge(dst: dict, src: Mapping, prefix: str) -> None:
@@ -90,7 +84,7 @@ def resolve_params(params: Mapping | None) -> dict:
             else:
                 dst[key] = value
 
-    merge(out, dict(params or {}), "")
+    merge(out, params, "")
     return out
 
 

@@ -20,6 +20,7 @@ import trimesh
 from threadpoolctl import threadpool_limits
 
 from mission.flight_time import DroneSettings
+from planner.base import plain_params
 from planner.evidence import EvidenceSettings, evidence_signals, sample_weights
 from planner.flight_time_term import FlightTimeTerm
 from planner.ours import PlanExtensions, plan_with, resolve_params
@@ -28,14 +29,6 @@ from scene.camera import Intrinsics
 from scene.plan import Plan, PlanningError
 
 EXTRA_SECTIONS = ("evidence", "flight_time", "drone")
-
-
-def _plain(params: Mapping | None) -> dict:
-    from omegaconf import DictConfig, OmegaConf
-
-    if isinstance(params, DictConfig):
-        return OmegaConf.to_container(params, resolve=True)
-    return dict(params or {})
 
 
 def evidence_weigher(proxy: trimesh.Trimesh, settings: EvidenceSettings):
@@ -66,7 +59,7 @@ def evidence_weigher(proxy: trimesh.Trimesh, settings: EvidenceSettings):
 
 def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: int) -> Plan:
     """Plan like ``planner.ours.plan`` with the exploration's evidence and a flight-time term."""
-    raw = _plain(params)
+    raw = plain_params(params)
     missing = [k for k in EXTRA_SECTIONS if k not in raw]
     if missing:
         raise PlanningError(f"planner ours_plus: missing setting(s) {missing} (conf/planner/ours_plus.yaml)")
