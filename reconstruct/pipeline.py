@@ -57,6 +57,8 @@ FLIGHT_CONFIG_KEYS = (
 )
 # Settings that change no result (only what is kept on disk): left out of every cache key.
 OUTPUT_ONLY_KEYS = ("keep_dense_workspace",)
+# sfm.mapping settings only the global mapper reads.
+GLOBAL_ONLY_MAPPING_KEYS = ("global_prior_ba", "global_prior_ba_max_iterations")
 
 
 def _plain(value):
@@ -73,9 +75,20 @@ def _plain(value):
     return value
 
 
+def _in_effect(section: str, value):
+    # The other mapper's settings cannot change a model: a new global-only setting must not move
+    # the cache keys of incremental runs (their proxies stay valid).
+    if section != "sfm" or not isinstance(value, dict) or not isinstance(value.get("mapping"), dict):
+        return value
+    mapping = value["mapping"]
+    unused = GLOBAL_ONLY_MAPPING_KEYS if mapping.get("method") != "global" else ()
+    return {**value, "mapping": {k: v for k, v in mapping.items() if k not in unused}}
+
+
 def proxy_settings(cfg: Mapping) -> dict:
-    """The ``reconstruct`` settings a proxy depends on (all but ``OUTPUT_ONLY_KEYS``), for cache keys."""
-    return {key: value for key, value in _plain(cfg).items() if key not in OUTPUT_ONLY_KEYS}
+    """The ``reconstruct`` settings a proxy depends on (all but ``OUTPUT_ONLY_KEYS`` and the other
+    mapper's settings), for cache keys."""
+    return {key: _in_effect(key, value) for key, value in _plain(cfg).items() if key not in OUTPUT_ONLY_KEYS}
 
 
 def flight_content_key(image_dir: Path, flight: Flight, cfg: Mapping, seed: int) -> str:
@@ -85,7 +98,7 @@ def flight_content_key(image_dir: Path, flight: Flight, cfg: Mapping, seed: int)
     the renderer's timings in it differ on every render of the same flight.
     """
     digest = hashlib.sha256()
-    config = {key: _plain(cfg[key]) for key in FLIGHT_CONFIG_KEYS}
+    config = {key: _in_effect(key, _plain(cfg[key])) for key in FLIGHT_CONFIG_KEYS}
     cameras = json.loads((Path(image_dir) / CAMERAS_FILE).read_text())
     header = {
         "config": config,

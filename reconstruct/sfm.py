@@ -40,6 +40,9 @@ class SfmOptions:
     sequential: pycolmap.SequentialPairingOptions
     incremental: pycolmap.IncrementalPipelineOptions
     global_: pycolmap.GlobalPipelineOptions
+    global_prior_ba: bool
+    prior_ba: pycolmap.BundleAdjustmentOptions
+    prior_ba_prior: pycolmap.PosePriorBundleAdjustmentOptions
     matching_method: str
     exhaustive_max_images: int
     mapping_method: str
@@ -149,6 +152,17 @@ def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> Sfm
     global_.mapper.bundle_adjustment.refine_principal_point = bool(pcfg["refine_principal_point"])
     global_.mapper.bundle_adjustment.refine_extra_params = bool(pcfg["refine_extra_params"])
 
+    # After the global mapper (which has no GNSS term): one bundle adjustment with the priors.
+    prior_ba = pycolmap.BundleAdjustmentOptions()
+    prior_ba.refine_focal_length = bool(pcfg["refine_focal_length"])
+    prior_ba.refine_principal_point = bool(pcfg["refine_principal_point"])
+    prior_ba.refine_extra_params = bool(pcfg["refine_extra_params"])
+    prior_ba.ceres.solver_options.max_num_iterations = int(pcfg["global_prior_ba_max_iterations"])
+    prior_ba.ceres.solver_options.num_threads = mapper_threads
+    prior_ba_prior = pycolmap.PosePriorBundleAdjustmentOptions()
+    if bool(pcfg["robust_loss_on_prior_position"]):
+        prior_ba_prior.ceres.prior_position_loss_function_type = pycolmap.LossFunctionType.CAUCHY
+
     return SfmOptions(
         extraction=extraction,
         matching=matching,
@@ -158,6 +172,9 @@ def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> Sfm
         sequential=sequential,
         incremental=incremental,
         global_=global_,
+        global_prior_ba=bool(pcfg["global_prior_ba"]),
+        prior_ba=prior_ba,
+        prior_ba_prior=prior_ba_prior,
         matching_method=matching_method,
         exhaustive_max_images=int(mcfg["exhaustive_max_images"]),
         mapping_method=mapping_method,
@@ -315,6 +332,9 @@ def map_reconstruction(
             models = pycolmap.incremental_mapping(database_path, image_dir, tmp, options=options.incremental)
         else:
             models = pycolmap.global_mapping(database_path, image_dir, tmp, options=options.global_)
+            if options.global_prior_ba:
+                for model in models.values():
+                    prior_bundle_adjustment(model, database_path, options)
     if not models:
         raise ReconstructionError(
             "the mapper found no model (no image pair could be initialised)",
@@ -322,6 +342,36 @@ def map_reconstruction(
         )
     # Ties keep the mapper's order (its model index), so the choice does not depend on dict order.
     return [models[k] for k in sorted(models, key=lambda k: (-models[k].num_reg_images(), k))]
+
+
+def prior_bundle_adjustment(
+    reconstruction: pycolmap.Reconstruction, database_path: Path, options: SfmOptions
+) -> None:
+    """Bundle-adjust ``reconstruction`` in place with the database's GNSS position priors (COLMAP's
+    pose-prior bundle adjuster: it aligns the model to the priors, then adds their residuals), as the
+    incremental mapper does with ``use_prior_position``. A model with fewer than 3 priors is left as
+    it is (the priors cannot fix its frame)."""
+    with pycolmap.Database.open(database_path) as db:
+        priors = db.read_all_pose_priors()
+    data_ids = {image.data_id for image in reconstruction.images.values() if image.has_pose}
+    priors = [p for p in priors if p.corr_data_id in data_ids]
+    if len(priors) < 3:
+        log.info(
+            "prior bundle adjustment skipped: %d priors in a model of %d images", len(priors), len(data_ids)
+        )
+        return
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in reconstruction.reg_image_ids():
+        config.add_image(image_id)
+    adjuster = pycolmap.create_pose_prior_bundle_adjuster(
+        options.prior_ba, options.prior_ba_prior, config, priors, reconstruction
+    )
+    summary = adjuster.solve()
+    log.info(
+        "prior bundle adjustment of %d images: %s",
+        len(data_ids),
+        getattr(summary, "BriefReport", lambda: "")(),
+    )
 
 
 def run_sfm(

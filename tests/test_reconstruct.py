@@ -37,7 +37,7 @@ from reconstruct.errors import ReconstructionError
 from reconstruct.flight import Flight, read_flight, simulate_gnss
 from reconstruct.pipeline import build_proxy, flight_content_key, proxy_flight_config, reconstruct_flight
 from reconstruct.proxy import degraded_ground_truth, oriented_cloud, poisson_proxy
-from reconstruct.sfm import map_reconstruction, pose_prior_pairs, sfm_options
+from reconstruct.sfm import map_reconstruction, pose_prior_pairs, sfm_options, write_pose_priors
 from reconstruct.timing import stage_time
 from scene.base import Box, MeshPart, Scene
 from scene.camera import Intrinsics, cam_from_world, look_at
@@ -539,6 +539,40 @@ def test_prior_position_settings_reach_the_mapper():
     # No priors at all: no robust loss on them either.
     none = sfm_options(reconstruct_cfg(**{"sfm.mapping.use_prior_position": False}).sfm)
     assert not none.incremental.use_prior_position and not none.incremental.use_robust_loss_on_prior_position
+
+
+def test_global_mapper_models_come_back_in_the_gnss_frame_with_the_prior_ba(tmp_path):
+    """The global mapper has no GNSS term; the pose-prior bundle adjustment after it puts the model
+    in the priors' frame (no similarity fit of ours), cameras closer to the truth than the fixes."""
+    options = pycolmap.SyntheticDatasetOptions()
+    options.num_rigs, options.num_cameras_per_rig, options.num_frames_per_rig = 1, 1, 30
+    options.num_points3D = 300
+    options.camera_model_id = pycolmap.CameraModelId.PINHOLE
+    options.camera_params = [1000.0, 1000.0, 512.0, 384.0]
+    options.sensor_from_rig_translation_stddev = 0.0
+    options.sensor_from_rig_rotation_stddev = 0.0
+    database_path = tmp_path / "database.db"
+    pycolmap.set_random_seed(0)
+    with pycolmap.Database.open(database_path) as db:
+        truth = pycolmap.synthesize_dataset(options, db)
+    ids = sorted(truth.reg_image_ids())
+    names = [truth.image(i).name for i in ids]
+    positions = np.array([truth.image(i).projection_center() for i in ids])
+    sigma = 0.005 * float(np.ptp(positions, axis=0).max())
+    gnss = simulate_gnss(positions, sigma, seed=1)
+    write_pose_priors(database_path, names, gnss, sigma)
+    gnss_error_median = float(np.median(np.linalg.norm(gnss - positions, axis=1)))
+    cfg = reconstruct_cfg(**{"sfm.mapping.method": "global"})
+    rec = map_reconstruction(database_path, tmp_path, sfm_options(cfg.sfm, seed=0))[0]
+    assert rec.num_reg_images() == 30
+    centre = {rec.image(i).name: rec.image(i).projection_center() for i in rec.reg_image_ids()}
+    error = np.linalg.norm(np.array([centre[n] for n in names]) - positions, axis=1)
+    assert np.median(error) < 0.5 * gnss_error_median
+    # Without it the model stays in the mapper's own frame, nowhere near the fixes.
+    cfg.sfm.mapping.global_prior_ba = False
+    raw = map_reconstruction(database_path, tmp_path, sfm_options(cfg.sfm, seed=0))[0]
+    centre = {raw.image(i).name: raw.image(i).projection_center() for i in raw.reg_image_ids()}
+    assert np.median(np.linalg.norm(np.array([centre[n] for n in names]) - positions, axis=1)) > 10 * sigma
 
 
 def test_global_ba_schedule_reaches_the_mapper():
