@@ -95,3 +95,17 @@ def test_exploration_key_follows_the_scene_content_not_only_its_config():
     assert key_with("reconstruct.keep_dense_workspace=false") == exploration_cache_key(cfg, same_a)
     assert key_with("reconstruct.dense.num_partners=7") != exploration_cache_key(cfg, same_a)
     assert key_with("reconstruct.proxy.roi_margin_m=null") != exploration_cache_key(cfg, same_a)
+    # The global mapper's own settings do not move an incremental run's key; they do move a global one's.
+    assert key_with("reconstruct.sfm.mapping.global_prior_ba=false") == exploration_cache_key(cfg, same_a)
+    assert key_with("reconstruct.sfm.mapping.method=global") != exploration_cache_key(cfg, same_a)
+    with initialize_config_dir(config_dir=str(conf_dir), version_base=None):
+        glob = compose("config", overrides=["scene=tomb", "reconstruct.sfm.mapping.method=global"])
+        glob_raw = compose(
+            "config",
+            overrides=[
+                "scene=tomb",
+                "reconstruct.sfm.mapping.method=global",
+                "reconstruct.sfm.mapping.global_prior_ba=false",
+            ],
+        )
+    assert exploration_cache_key(glob, same_a) != exploration_cache_key(glob_raw, same_a)
