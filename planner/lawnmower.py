@@ -46,6 +46,13 @@ DEFAULTS = {
     "pitch_min_deg": -90.0,
     "pitch_max_deg": 30.0,
     "structure_min_height_m": 0.5,  # plan(): see structure_bounds_from_proxy
+    # Orbit rings after the grid (0: none, the paper's flight): horizontal rings around the
+    # structure's footprint at evenly spaced heights, each view facing the footprint, for structures
+    # whose walls a grid above the top sees only at grazing angles (tall plants, courtyards).
+    "orbit_rings": 0,
+    "orbit_distance_m": None,  # ring distance from the footprint (m); None: altitude_above_top_m
+    "orbit_pitch_deg": -15.0,  # camera pitch on the rings (some ground in view links them to the grid)
+    "orbit_min_height_m": 2.0,  # lowest ring height above the ground (m)
 }
 
 MODES = ("centre", "nadir")
@@ -116,6 +123,80 @@ def grid_positions(
     return np.concatenate(positions), np.concatenate(headings), np.concatenate(lines)
 
 
+def orbit_ring(
+    lo_xy: np.ndarray, hi_xy: np.ndarray, distance_m: float, spacing_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Points every ``spacing_m`` (at most) along the rectangle ``lo_xy``-``hi_xy`` grown by
+    ``distance_m`` (straight sides, quarter circles at the corners), and the inward unit normal at
+    each: (N, 2) positions and (N, 2) directions towards the rectangle, counter-clockwise."""
+    if not (distance_m > 0 and spacing_m > 0):
+        raise ValueError(f"orbit ring: distance ({distance_m}) and spacing ({spacing_m}) must be > 0")
+    lo_xy, hi_xy = np.asarray(lo_xy, float), np.asarray(hi_xy, float)
+    w, h = hi_xy - lo_xy
+    arc = 0.5 * math.pi * distance_m
+    # Pieces in order: bottom side, corner (hi x, lo y), right side, corner, top, corner, left, corner.
+    lengths = np.array([w, arc, h, arc, w, arc, h, arc])
+    total = float(lengths.sum())
+    n = max(4, math.ceil(total / spacing_m))
+    s = np.arange(n) * (total / n)
+    starts = np.concatenate([[0.0], np.cumsum(lengths)[:-1]])
+    piece = np.searchsorted(starts, s, side="right") - 1
+    t = s - starts[piece]
+    corners = np.array(
+        [[hi_xy[0], lo_xy[1]], [hi_xy[0], hi_xy[1]], [lo_xy[0], hi_xy[1]], [lo_xy[0], lo_xy[1]]]
+    )
+    side_start = np.array(
+        [[lo_xy[0], lo_xy[1]], [hi_xy[0], lo_xy[1]], [hi_xy[0], hi_xy[1]], [lo_xy[0], hi_xy[1]]]
+    )
+    side_dir = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
+    outward = np.array([[0.0, -1.0], [1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]])
+    positions = np.empty((n, 2))
+    inward = np.empty((n, 2))
+    k = piece // 2
+    straight = piece % 2 == 0
+    positions[straight] = (
+        side_start[k[straight]]
+        + side_dir[k[straight]] * t[straight, None]
+        + outward[k[straight]] * distance_m
+    )
+    inward[straight] = -outward[k[straight]]
+    bend = ~straight
+    # A corner's arc turns from one side's outward normal to the next one's.
+    start_angle = np.arctan2(outward[k[bend], 1], outward[k[bend], 0])
+    angle = start_angle + t[bend] / distance_m
+    radial = np.column_stack([np.cos(angle), np.sin(angle)])
+    positions[bend] = corners[k[bend]] + radial * distance_m
+    inward[bend] = -radial
+    return positions, inward
+
+
+def _orbit_views(structure_bounds: Box, intrinsics: Intrinsics, p: dict) -> np.ndarray:
+    """(V, 5) viewpoints of ``orbit_rings`` rings around the structure (see ``DEFAULTS``)."""
+    rings = int(p["orbit_rings"])
+    if rings < 0:
+        raise ValueError(f"lawnmower: orbit_rings must be >= 0, got {rings}")
+    if rings == 0:
+        return np.empty((0, 5))
+    distance = float(
+        p["orbit_distance_m"] if p["orbit_distance_m"] is not None else p["altitude_above_top_m"]
+    )
+    if distance <= 0:
+        raise ValueError(f"lawnmower: orbit_distance_m must be > 0, got {distance}")
+    # Along a ring consecutive images overlap by front_overlap at the footprint's edge.
+    width_m = 2.0 * distance * math.tan(math.radians(intrinsics.hfov_deg) / 2.0)
+    spacing = (1.0 - _check_overlap("front_overlap", p["front_overlap"])) * width_m
+    xy, inward = orbit_ring(structure_bounds.lo_array[:2], structure_bounds.hi_array[:2], distance, spacing)
+    lo_z, height = float(structure_bounds.lo[2]), float(structure_bounds.extent[2])
+    heights = np.maximum(lo_z + (np.arange(rings) + 0.5) / rings * height, float(p["orbit_min_height_m"]))
+    yaw = np.degrees(np.arctan2(inward[:, 1], inward[:, 0]))
+    pitch = float(np.clip(p["orbit_pitch_deg"], p["pitch_min_deg"], p["pitch_max_deg"]))
+    views = []
+    for i, z in enumerate(heights):
+        ring = np.column_stack([xy, np.full(len(xy), z), yaw, np.full(len(xy), pitch)])
+        views.append(ring if i % 2 == 0 else ring[::-1])  # alternate the direction: short hops between rings
+    return np.concatenate(views)
+
+
 def plan_exploration(
     structure_bounds: Box, intrinsics: Intrinsics, params: Mapping | None, seed: int = 0
 ) -> Plan:
@@ -128,7 +209,8 @@ def plan_exploration(
         seed: unused (the flight is deterministic); kept for the planner interface.
 
     Returns:
-        A ``Plan`` with kinds ``nadir`` or ``grid`` (centre-aimed), in boustrophedon order.
+        A ``Plan`` with kinds ``nadir`` or ``grid`` (centre-aimed), in boustrophedon order, then the
+        ``orbit`` rings when ``orbit_rings`` > 0.
     """
     del seed
     t0 = time.perf_counter()
@@ -199,6 +281,9 @@ def plan_exploration(
         pitch = np.clip(pitch, float(p["pitch_min_deg"]), float(p["pitch_max_deg"]))
         kinds = ["grid"] * len(positions)
     viewpoints = np.column_stack([positions, np.mod(yaw + 180.0, 360.0) - 180.0, pitch])
+    orbit = _orbit_views(structure_bounds, intrinsics, p)
+    viewpoints = np.concatenate([viewpoints, orbit])
+    kinds = list(kinds) + ["orbit"] * len(orbit)
     info = {
         "parameters": {**p, "mode": mode, "flight_direction": direction},
         "altitude_m": altitude,
@@ -207,6 +292,7 @@ def plan_exploration(
         "spacing_along_m": spacing_along,
         "spacing_across_m": spacing_across,
         "n_lines": int(lines.max()) + 1,
+        "n_orbit_views": len(orbit),
         "region_lo_xy": region_lo.tolist(),
         "region_hi_xy": region_hi.tolist(),
         "structure_bounds": structure_bounds.as_dict(),

@@ -155,3 +155,41 @@ def test_structure_inside_one_footprint_is_refused():
     tiny = Box((-1.0, -1.0, 0.0), (1.0, 1.0, 2.0))
     with pytest.raises(PlanningError, match="altitude"):
         plan_exploration(tiny, CAMERA, {}, seed=0)
+
+
+def test_orbit_ring_keeps_its_distance_from_the_footprint_and_faces_it():
+    from planner.lawnmower import orbit_ring
+
+    lo, hi, d, spacing = np.array([-5.0, -2.0]), np.array([5.0, 2.0]), 3.0, 1.5
+    xy, inward = orbit_ring(lo, hi, d, spacing)
+    perimeter = 2 * (10.0 + 4.0) + 2 * np.pi * d
+    assert len(xy) == int(np.ceil(perimeter / spacing))
+    # Distance from each point to the rectangle: exactly d; the inward normal points at its nearest point.
+    nearest = np.clip(xy, lo, hi)
+    np.testing.assert_allclose(np.linalg.norm(xy - nearest, axis=1), d, atol=1e-9)
+    np.testing.assert_allclose(nearest - xy, inward * d, atol=1e-9)
+    # Evenly spaced along the ring (chords of at most the spacing), counter-clockwise.
+    steps = np.linalg.norm(np.diff(np.vstack([xy, xy[:1]]), axis=0), axis=1)
+    assert steps.max() <= perimeter / len(xy) + 1e-9 and steps.min() > 0.9 * perimeter / len(xy)
+    area = 0.5 * np.sum(xy[:, 0] * np.roll(xy[:, 1], -1) - np.roll(xy[:, 0], -1) * xy[:, 1])
+    assert area > 0
+
+
+def test_exploration_with_orbit_rings_adds_rings_facing_the_structure():
+    plain = plan_exploration(TOMB_BOUNDS, CAMERA, {}, seed=0)
+    flight = plan_exploration(TOMB_BOUNDS, CAMERA, {"orbit_rings": 2}, seed=0)
+    orbit = flight.viewpoints[np.array(flight.kinds) == "orbit"]
+    np.testing.assert_allclose(flight.viewpoints[: len(plain.viewpoints)], plain.viewpoints)
+    assert len(orbit) == flight.info["n_orbit_views"] == len(flight.viewpoints) - len(plain.viewpoints)
+    # Two rings at 1/4 and 3/4 of the 12 m structure, 15 m (altitude_above_top_m) from its footprint.
+    assert sorted(set(np.round(orbit[:, 2], 6))) == [3.0, 9.0]
+    lo, hi = TOMB_BOUNDS.lo_array[:2], TOMB_BOUNDS.hi_array[:2]
+    gap = np.linalg.norm(orbit[:, :2] - np.clip(orbit[:, :2], lo, hi), axis=1)
+    np.testing.assert_allclose(gap, 15.0, atol=1e-9)
+    # Each view faces the footprint (its nearest point) at the ring pitch.
+    towards = np.clip(orbit[:, :2], lo, hi) - orbit[:, :2]
+    yaw = np.degrees(np.arctan2(towards[:, 1], towards[:, 0]))
+    np.testing.assert_allclose(np.mod(orbit[:, 3] - yaw + 180.0, 360.0) - 180.0, 0.0, atol=1e-9)
+    assert np.all(orbit[:, 4] == -15.0)
+    with pytest.raises(ValueError, match="orbit_rings must be >= 0"):
+        plan_exploration(TOMB_BOUNDS, CAMERA, {"orbit_rings": -1}, seed=0)
