@@ -46,6 +46,7 @@ from experiments.runs import (  # noqa: E402
     scene_name,
     scene_sort_key,
 )
+from planner.budget import DEFAULT_LEVEL, level_rank  # noqa: E402
 from scene.camera import forward_vectors  # noqa: E402
 from scene.io import write_atomic  # noqa: E402
 from scene.plan import polyline_length  # noqa: E402
@@ -534,13 +535,13 @@ def make_figures(
         "metrics_vs_images": [],
         "metrics_vs_flight_time": [],
     }
-    groups: dict[tuple[str, str], list[Run]] = {}
+    groups: dict[tuple[str, str, str], list[Run]] = {}
     for run in runs:
-        groups.setdefault((run.scene, run.planner), []).append(run)
+        groups.setdefault((run.scene, run.planner, run.budget), []).append(run)
 
     mesh_cache: dict[str, tuple] = {}
-    by_planner: dict[str, list[tuple]] = {}
-    for (scene, planner), cell_runs in tqdm(groups.items(), desc="flight paths", unit="cell"):
+    by_planner: dict[tuple[str, str], list[tuple]] = {}
+    for (scene, planner, budget), cell_runs in tqdm(groups.items(), desc="flight paths", unit="cell"):
         if planners is not None and planner not in planners:
             continue
         run, plan = _first_run_with_plan(cell_runs)
@@ -556,31 +557,37 @@ def make_figures(
         viewpoints, kinds = plan
         length = polyline_length(viewpoints[:, :3])
         title = (
-            f"{method_name(planner)}: {scene_name(scene)} (seed {run.seed}), {len(viewpoints)} viewpoints, "
-            f"{length:.0f} m flight"
+            f"{method_name(planner, budget)}: {scene_name(scene)} (seed {run.seed}), "
+            f"{len(viewpoints)} viewpoints, {length:.0f} m flight"
         )
         fig = plot_flight_path(viewpoints, kinds, mesh, title=title, mesh_label=label or "scene")
-        written["flight_paths"] += save_figure(fig, out_dir / f"flight_{scene}_{planner}", dpi)
+        tag = planner if budget == DEFAULT_LEVEL else f"{planner}_{budget}"
+        written["flight_paths"] += save_figure(fig, out_dir / f"flight_{scene}_{tag}", dpi)
         subtitle = f"{scene_name(scene)}: {len(viewpoints)} views, {length:.0f} m"
-        by_planner.setdefault(planner, []).append((subtitle, viewpoints, kinds, mesh))
-    for planner, flights in by_planner.items():
+        by_planner.setdefault((planner, budget), []).append((subtitle, viewpoints, kinds, mesh))
+    for (planner, budget), flights in by_planner.items():
         if len(flights) > 1:
-            fig = plot_flight_paths_by_scene(flights, title=f"Flight paths: {method_name(planner)}")
-            written["flight_paths"] += save_figure(fig, out_dir / f"flight_paths_{planner}", dpi)
+            tag = planner if budget == DEFAULT_LEVEL else f"{planner}_{budget}"
+            fig = plot_flight_paths_by_scene(flights, title=f"Flight paths: {method_name(planner, budget)}")
+            written["flight_paths"] += save_figure(fig, out_dir / f"flight_paths_{tag}", dpi)
 
     panels = [
         ("errors", error_glob, "Reconstruction error", "error_scale"),
         ("coverage", coverage_glob, "Ground truth covered", "covered_within_m"),
     ]
-    for scene in sorted({s for s, _ in groups}, key=scene_sort_key):
+    for scene in sorted({key[0] for key in groups}, key=scene_sort_key):
         for kind, pattern, heading, key in panels:
             columns: dict[str, dict[str, Path]] = {}
             keys = []
-            for planner in sorted({p for s, p in groups if s == scene}, key=method_sort_key):
-                for run in sorted(groups[(scene, planner)], key=lambda r: r.seed):
+            cells = sorted(
+                ((p, b) for s, p, b in groups if s == scene),
+                key=lambda pb: (method_sort_key(pb[0]), level_rank(pb[1])),
+            )
+            for planner, budget in cells:
+                for run in sorted(groups[(scene, planner, budget)], key=lambda r: r.seed):
                     found = error_images(run, pattern)
                     if found:
-                        columns[f"{method_name(planner)} (seed {run.seed})"] = found
+                        columns[f"{method_name(planner, budget)} (seed {run.seed})"] = found
                         keys.append(panel_keys(run)[key])
                         break
             if columns:

@@ -63,18 +63,22 @@ class Reach:
     """The cost at which a front first reaches a level.
 
     Attributes:
-        cost: interpolated cost (images or minutes), NaN when not reached.
+        cost: interpolated cost (images or minutes), NaN when not reached or not known.
         at_most: the front's smallest budget already reaches the level (the cost is an upper bound).
+        missing: a cost the answer needs was not recorded (e.g. flight time in older records).
     """
 
     cost: float
     at_most: bool = False
+    missing: bool = False
 
     @property
     def reached(self) -> bool:
         return math.isfinite(self.cost)
 
     def text(self, decimals: int = 0) -> str:
+        if self.missing:
+            return "n/a"
         if not self.reached:
             return "not reached"
         return ("≤ " if self.at_most else "") + f"{self.cost:,.{decimals}f}"
@@ -84,7 +88,8 @@ def cost_to_reach(costs: Sequence[float], values: Sequence[float], level: float)
     """Where the front ``(costs[i], values[i])`` (budget order) first reaches ``level``.
 
     Linear between the last point below ``level`` and the first at or above it; ``at_most`` when the
-    first point is already there; NaN when no point is.
+    first point is already there; NaN when no point is; ``missing`` when a cost the answer needs
+    (the points up to the first one at the level) was not recorded.
     """
     x, y = np.asarray(costs, float), np.asarray(values, float)
     if x.shape != y.shape or x.ndim != 1:
@@ -93,6 +98,8 @@ def cost_to_reach(costs: Sequence[float], values: Sequence[float], level: float)
     if not len(hits):
         return Reach(math.nan)
     i = int(hits[0])
+    if not np.isfinite(x[max(i - 1, 0) : i + 1]).all():
+        return Reach(math.nan, missing=True)
     if i == 0:
         return Reach(float(x[0]), at_most=True)
     t = (level - y[i - 1]) / (y[i] - y[i - 1])
@@ -155,8 +162,9 @@ def front_table(
     """Per (scene, planner): budgets on the front, images and flight minutes to reach each of
     ``targets_pct`` (completeness at 5 cm), completeness and acc90 at each of ``at_images``.
 
-    Columns: scene, planner, method, budgets, images_range, ``images_to_<t>``, ``images_to_<t>_at_most``,
-    ``minutes_to_<t>``, ``minutes_to_<t>_at_most``, ``comp_at_<n>``, ``acc90_cm_at_<n>``.
+    Columns: scene, planner, method, budgets, images_min, images_max, ``images_to_<t>``,
+    ``images_to_<t>_at_most``, ``minutes_to_<t>``, ``minutes_to_<t>_at_most``, ``minutes_to_<t>_missing``
+    (flight time not recorded), ``comp_at_<n>``, ``acc90_cm_at_<n>``.
     """
     rows = []
     for (scene, planner), front in points.groupby(["scene", "planner"], sort=False):
@@ -180,6 +188,7 @@ def front_table(
             row[f"images_to_{key}_at_most"] = by_images.at_most
             row[f"minutes_to_{key}"] = by_minutes.cost
             row[f"minutes_to_{key}_at_most"] = by_minutes.at_most
+            row[f"minutes_to_{key}_missing"] = by_minutes.missing
         for n in at_images:
             row[f"comp_at_{n}"] = value_at(images, comp, n)
             row[f"acc90_cm_at_{n}"] = value_at(images, acc_cm, n)
@@ -188,7 +197,8 @@ def front_table(
 
 
 def _reach_cell(row, prefix: str, key: str, decimals: int) -> str:
-    return Reach(row[f"{prefix}_to_{key}"], bool(row[f"{prefix}_to_{key}_at_most"])).text(decimals)
+    missing = bool(row.get(f"{prefix}_to_{key}_missing", False))
+    return Reach(row[f"{prefix}_to_{key}"], bool(row[f"{prefix}_to_{key}_at_most"]), missing).text(decimals)
 
 
 def _value_cell(value: float, decimals: int) -> str:
@@ -223,8 +233,9 @@ def _table_rows(
 
 FRONT_CAPTION = (
     "Quality per image. Images (and minutes of flight) each planner needs to reach a completeness at "
-    "5 cm, interpolated on its budget front (≤: its smallest budget reaches it already); completeness "
-    "and acc90 at equal image counts (–: outside the images its budgets span)."
+    "5 cm, interpolated on its budget front (≤: its smallest budget reaches it already; n/a: flight "
+    "time not recorded); completeness and acc90 at equal image counts (–: outside the images its "
+    "budgets span)."
 )
 
 

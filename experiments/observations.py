@@ -213,6 +213,7 @@ def run_observations(run: Run, criteria: ObservationCriteria) -> pd.DataFrame:
     return table.assign(
         scene=run.scene,
         planner=run.planner,
+        budget=run.budget,
         seed=run.seed,
         n_views=len(views),
         n_rendered=n_rendered,
@@ -247,7 +248,9 @@ def to_markdown(frame: pd.DataFrame, criteria: ObservationCriteria) -> str:
         + " |",
         "| :-- | :-- | --: | " + " | ".join("--:" for _ in SURFACE_CLASSES) + " |",
     ]
-    for (scene, planner, seed), rows in frame.groupby(["scene", "planner", "seed"], sort=False):
+    for (scene, planner, budget, seed), rows in frame.groupby(
+        ["scene", "planner", "budget", "seed"], sort=False
+    ):
         first = rows.iloc[0]
         registered = (
             f"{first.n_views} / {first.n_rendered}" if first.registration_known else f"all {first.n_rendered}"
@@ -260,7 +263,7 @@ def to_markdown(frame: pd.DataFrame, criteria: ObservationCriteria) -> str:
                 if np.isnan(row.well_observed_pct)
                 else f"{row.well_observed_pct:.0f} / {row.seen_pct:.0f}"
             )
-        method = method_name(planner) + (f" (seed {seed})" if frame.seed.nunique() > 1 else "")
+        method = method_name(planner, budget) + (f" (seed {seed})" if frame.seed.nunique() > 1 else "")
         lines.append(f"| {scene_name(scene)} | {method} | {registered} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

@@ -21,16 +21,19 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
+import shutil
 import sys
+import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
 import pandas as pd
 
 from experiments.fronts import write_fronts
-from experiments.runs import RunDirectoryError, load_runs, runs_frame, scene_name
+from experiments.runs import RunDirectoryError, load_runs, method_sort_key, runs_frame, scene_name
 from experiments.tables import code_provenance, tables_from_runs, write_tables
-from planner.budget import DEFAULT_LEVEL
+from planner.budget import DEFAULT_LEVEL, level_rank
 from scene.io import write_text_atomic
 
 log = logging.getLogger(__name__)
@@ -67,10 +70,11 @@ def study_readme(study: str, runs: pd.DataFrame) -> str:
     ok = runs[runs["status"] == "ok"]
     scenes = ", ".join(dict.fromkeys(scene_name(s) for s in runs["scene"]))
     per_planner = runs.groupby("planner", sort=False).agg(
-        budgets=("budget", lambda b: ", ".join(dict.fromkeys(b))),
+        budgets=("budget", lambda b: ", ".join(sorted(set(b), key=level_rank))),
         seeds=("seed", lambda s: ", ".join(str(x) for x in sorted(set(s)))),
         cells=("seed", "size"),
     )
+    per_planner = per_planner.loc[sorted(per_planner.index, key=method_sort_key)]
     lines = [
         f"# Study `{study}`",
         "",
@@ -103,20 +107,36 @@ def study_readme(study: str, runs: pd.DataFrame) -> str:
 def write_study(study: str, cells_root: Path = CELLS, out_root: Path = ROOT / "results") -> list[Path]:
     """Regenerate ``out_root/<study>/`` from ``cells_root/<study>/``; return the files written.
 
+    The folder is built beside its place and swapped in whole, so it never mixes files of two
+    generations (a table a study no longer has is gone, not left stale).
+
     Raises:
         RunDirectoryError: the study folder is missing or holds no record.
     """
     runs = study_runs(Path(cells_root) / study)
     out = Path(out_root) / study
-    written = []
-    at_default = runs[runs["budget"] == DEFAULT_LEVEL]
-    if len(at_default):
-        written += write_tables(tables_from_runs(at_default.reset_index(drop=True)), out / "tables")
-    if (runs["status"] == "ok").any():
-        written += write_fronts(runs, out)
-    written.append(write_text_atomic(out / "cells.csv", runs.to_csv(index=False, lineterminator="\n")))
-    written.append(write_text_atomic(out / "README.md", study_readme(study, runs)))
-    return written
+    out.parent.mkdir(parents=True, exist_ok=True)
+    build = Path(tempfile.mkdtemp(prefix=f".{study}.", dir=out.parent))
+    try:
+        written = []
+        at_default = runs[runs["budget"] == DEFAULT_LEVEL]
+        if len(at_default):
+            written += write_tables(tables_from_runs(at_default.reset_index(drop=True)), build / "tables")
+        if (runs["status"] == "ok").any():
+            written += write_fronts(runs, build)
+        written.append(write_text_atomic(build / "cells.csv", runs.to_csv(index=False, lineterminator="\n")))
+        written.append(write_text_atomic(build / "README.md", study_readme(study, runs)))
+        os.chmod(build, 0o755)
+        old = out.with_name(f".{study}.old")
+        shutil.rmtree(old, ignore_errors=True)
+        if out.exists():
+            os.replace(out, old)
+        os.replace(build, out)
+        shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(build, ignore_errors=True)
+        raise
+    return [out / p.relative_to(build) for p in written]
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from planner.budget import DEFAULT_LEVEL, level_rank
+from planner.budget import DEFAULT_LEVEL, LEVELS, level_rank
 from scene.camera import Intrinsics
 
 log = logging.getLogger(__name__)
@@ -153,6 +153,9 @@ def read_metrics(run_dir: str | Path) -> dict:
     if record.get("seed") is None:
         config = config if config is not None else read_run_config(run_dir)
         record["seed"] = int(config.get("seed", 0)) if config is not None else 0
+    budget = record.get("budget") or DEFAULT_LEVEL
+    if budget not in LEVELS:
+        raise RunDirectoryError(f"{path}: unknown budget {budget!r} (one of {', '.join(LEVELS)})")
     status = record.setdefault("status", "ok")
     if status != "ok" and not record.get("error"):
         # e.g. "running" from a run killed between writes: count it as failed, saying why.

@@ -60,7 +60,7 @@ def _set(params: dict, path: str, value) -> None:
 
 
 def apply_budget(params: Mapping, level: str, planner: str) -> tuple[dict, dict]:
-    """The planner's parameters at budget ``level``, without the config-only keys.
+    """The planner's parameters at budget ``level``, without the ``budget`` block.
 
     Args:
         params: the planner's resolved config (plain containers), with its ``budget`` block.
@@ -68,9 +68,10 @@ def apply_budget(params: Mapping, level: str, planner: str) -> tuple[dict, dict]
         planner: the planner's name (for messages).
 
     Returns:
-        ``(params, record)``: a deep copy with the knob set and ``name``/``_target_``/``budget``
-        removed, and ``{"budget", "budget_knob", "budget_value"}`` for metrics.json (the value of
-        the first knob path, as the planner sees it).
+        ``(params, record)``: a deep copy with the knob set and the ``budget`` block removed
+        (``name`` and ``_target_`` stay: a planner may read its name), and ``{"budget",
+        "budget_knob", "budget_value"}`` for metrics.json (the value of the first knob path, as
+        the planner sees it).
 
     Raises:
         ValueError: an unknown level, a level the planner does not define, or a knob that names no
@@ -78,7 +79,7 @@ def apply_budget(params: Mapping, level: str, planner: str) -> tuple[dict, dict]
     """
     level_rank(level)
     spec = params.get("budget")
-    out = {k: copy.deepcopy(v) for k, v in params.items() if k not in CONFIG_KEYS}
+    out = {k: copy.deepcopy(v) for k, v in params.items() if k != "budget"}
     if not spec:
         if level != DEFAULT_LEVEL:
             raise ValueError(f"planner {planner} has no budget knob (no budget block in its config)")

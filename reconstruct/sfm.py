@@ -160,6 +160,7 @@ def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> Sfm
     prior_ba.ceres.solver_options.max_num_iterations = int(pcfg["global_prior_ba_max_iterations"])
     prior_ba.ceres.solver_options.num_threads = mapper_threads
     prior_ba_prior = pycolmap.PosePriorBundleAdjustmentOptions()
+    prior_ba_prior.alignment_ransac.random_seed = int(seed)
     if bool(pcfg["robust_loss_on_prior_position"]):
         prior_ba_prior.ceres.prior_position_loss_function_type = pycolmap.LossFunctionType.CAUCHY
 
@@ -367,11 +368,12 @@ def prior_bundle_adjustment(
         options.prior_ba, options.prior_ba_prior, config, priors, reconstruction
     )
     summary = adjuster.solve()
-    log.info(
-        "prior bundle adjustment of %d images: %s",
-        len(data_ids),
-        getattr(summary, "BriefReport", lambda: "")(),
-    )
+    if not summary.is_solution_usable():
+        raise ReconstructionError(
+            f"the bundle adjustment with the GNSS priors failed: {summary.brief_report()}",
+            {"stage": "mapping"},
+        )
+    log.info("prior bundle adjustment of %d images: %s", len(data_ids), summary.brief_report())
 
 
 def run_sfm(

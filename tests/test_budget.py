@@ -21,9 +21,15 @@ CONFIG = {
 }
 
 
-def test_a_level_sets_every_knob_path_and_drops_the_config_keys():
+def test_a_level_sets_every_knob_path_and_drops_the_budget_block():
     params, record = apply_budget(CONFIG, "highest", "toy")
-    assert params == {"front_overlap": 0.9, "side_overlap": 0.9, "heuristics": {"k_count": 3}}
+    assert params == {
+        "name": "toy",
+        "_target_": "toy.plan",
+        "front_overlap": 0.9,
+        "side_overlap": 0.9,
+        "heuristics": {"k_count": 3},
+    }
     assert record == {"budget": "highest", "budget_knob": "front_overlap,side_overlap", "budget_value": 0.9}
     assert CONFIG["front_overlap"] == 0.8  # the config itself is left as it was
 
@@ -83,3 +89,13 @@ def test_the_budgets_preset_sweeps_levels_every_planner_defines():
                 )
                 values.append(planner_setup(cfg)[1]["budget_value"])
             assert values == sorted(values) and len(set(values)) == len(levels), planner
+
+
+def test_a_record_with_an_unknown_budget_is_refused_by_name(tmp_path):
+    import json
+
+    from experiments.runs import RunDirectoryError, read_metrics
+
+    (tmp_path / "metrics.json").write_text(json.dumps({"scene": "tomb", "planner": "ours", "budget": "huge"}))
+    with pytest.raises(RunDirectoryError, match="unknown budget 'huge'"):
+        read_metrics(tmp_path)

@@ -121,3 +121,14 @@ def test_the_front_figure_joins_each_planner_in_budget_order():
     assert list(accuracy["Ours"].get_ydata()) == pytest.approx([4.0, 4.0, 3.0])
     minutes = _front_lines(plot_fronts(points, "flight_time_s").axes[0])
     assert list(minutes["Ours"].get_xdata()) == [10.0, 21.0, 40.0]
+
+
+def test_a_cost_that_was_not_recorded_is_not_an_answer():
+    """Records from before flight time was recorded: the minutes are unknown, not "not reached"."""
+    reach = cost_to_reach([float("nan"), float("nan")], [40.0, 80.0], 50.0)
+    assert reach.missing and reach.text() == "n/a"
+    # Known where the answer lies: an unknown cost elsewhere on the front does not matter.
+    assert cost_to_reach([10.0, 20.0, float("nan")], [40.0, 80.0, 90.0], 50.0).cost == pytest.approx(12.5)
+    runs = _runs().drop(columns="flight_time_s")
+    table = front_table(front_points(runs), targets_pct=(50.0,), at_images=(300,))
+    assert bool(table.iloc[0]["minutes_to_50_missing"]) and math.isnan(table.iloc[0]["minutes_to_50"])
