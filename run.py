@@ -67,7 +67,7 @@ def planner_setup(cfg: DictConfig) -> tuple[DictConfig, dict]:
     The experiment preset's overrides for this planner are merged in first: presets
     (conf/experiment/*.yaml) carry ``experiment.planner_overrides.<planner name>``, because each
     planner has parameters of its own. Then ``budget=<level>`` sets the planner's budget knob
-    (``planner.budget``); the config-only keys (``name``, ``_target_``, ``budget``) are dropped.
+    (``planner.budget``) and the ``budget`` block is dropped (``name`` and ``_target_`` stay).
 
     Raises:
         ValueError: a budget level the planner does not define.

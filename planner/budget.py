@@ -4,10 +4,10 @@ A planner config (``conf/planner/<name>.yaml``) names its budget knob and the kn
 level, from the fewest images to the most:
 
     budget:
-      knob: heuristics.k_count       # dotted path of the setting (a list: several set together)
-      levels: {low: 2, high: 5}      # ``default`` is the config's own value and needs no entry
+      knob: target_gsd_m             # dotted path of the setting (a list: several set together)
+      levels: {low: 0.045, high: 0.02}   # ``default`` is the config's own value and needs no entry
 
-``python run.py planner=ours budget=high`` plans with ``heuristics.k_count = 5``; ``budget=default``
+``python run.py planner=ours budget=high`` plans with ``target_gsd_m = 0.02``; ``budget=default``
 (conf/config.yaml) leaves the config as it is. The level, knob and value go into ``metrics.json``
 (``budget``, ``budget_knob``, ``budget_value``) so that fronts join a planner's cells in budget order.
 """

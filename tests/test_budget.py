@@ -88,7 +88,8 @@ def test_the_budgets_preset_sweeps_levels_every_planner_defines():
                     "config", overrides=["experiment=budgets", f"planner={planner}", f"budget={level}"]
                 )
                 values.append(planner_setup(cfg)[1]["budget_value"])
-            assert values == sorted(values) and len(set(values)) == len(levels), planner
+            assert len(set(values)) == len(levels), planner
+            assert values in (sorted(values), sorted(values, reverse=True)), planner
 
 
 def test_a_record_with_an_unknown_budget_is_refused_by_name(tmp_path):

@@ -79,7 +79,7 @@ def test_defaults_are_the_config_file():
     survey = yaml.safe_load((ROOT / "conf" / "config.yaml").read_text())["survey"]
     cfg["target_gsd_m"] = survey["target_gsd_m"]
     assert cfg.pop("name") == "ours" and cfg.pop("_target_") == "planner.ours.plan"
-    assert cfg.pop("budget")["knob"] == "heuristics.k_count"
+    assert cfg.pop("budget")["knob"] == "target_gsd_m"
     assert cfg == DEFAULTS
 
 
