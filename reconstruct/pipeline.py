@@ -59,6 +59,8 @@ FLIGHT_CONFIG_KEYS = (
 OUTPUT_ONLY_KEYS = ("keep_dense_workspace",)
 # sfm.mapping settings only the global mapper reads.
 GLOBAL_ONLY_MAPPING_KEYS = ("global_prior_ba", "global_prior_ba_max_iterations")
+# dense.fusion settings that bound resources, not results.
+RESOURCE_ONLY_FUSION_KEYS = ("cache_size_gb",)
 
 
 def _plain(value):
@@ -77,7 +79,10 @@ def _plain(value):
 
 def _in_effect(section: str, value):
     # The other mapper's settings cannot change a model: a new global-only setting must not move
-    # the cache keys of incremental runs (their proxies stay valid).
+    # the cache keys of incremental runs (their proxies stay valid). Nor can fusion's memory cap.
+    if section == "dense" and isinstance(value, dict) and isinstance(value.get("fusion"), dict):
+        fusion = {k: v for k, v in value["fusion"].items() if k not in RESOURCE_ONLY_FUSION_KEYS}
+        return {**value, "fusion": fusion}
     if section != "sfm" or not isinstance(value, dict) or not isinstance(value.get("mapping"), dict):
         return value
     mapping = value["mapping"]

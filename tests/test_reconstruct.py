@@ -27,6 +27,7 @@ from reconstruct.dense import (
     consistent_depth,
     disparity_search_range,
     fuse,
+    fusion_options,
     normals_from_depth,
     pair_depth,
     prepare_workspace,
@@ -573,6 +574,28 @@ def test_global_mapper_models_come_back_in_the_gnss_frame_with_the_prior_ba(tmp_
     raw = map_reconstruction(database_path, tmp_path, sfm_options(cfg.sfm, seed=0))[0]
     centre = {raw.image(i).name: raw.image(i).projection_center() for i in raw.reg_image_ids()}
     assert np.median(np.linalg.norm(np.array([centre[n] for n in names]) - positions, axis=1)) > 10 * sigma
+
+
+def test_fusion_memory_cap_gives_the_same_cloud(box_reconstruction, tmp_path):
+    """Fusion through COLMAP's cached workspace (views loaded on demand) fuses the same points as
+    loading every view at once."""
+    out_dir, record = box_reconstruction
+    workspace = out_dir / "dense"
+    names = sorted(p.name for p in (workspace / "images").iterdir())
+    cfg = reconstruct_cfg().dense
+    assert fusion_options(cfg).use_cache and fusion_options(cfg).cache_size == 6.0
+    cfg.fusion.cache_size_gb = None
+    assert not fusion_options(cfg).use_cache
+    everything = fuse(workspace, tmp_path / "all.ply", cfg, names, deterministic=True)
+    cfg.fusion.cache_size_gb = 0.05  # COLMAP's cached workspace (the 33 small views fit)
+    capped = fuse(workspace, tmp_path / "capped.ply", cfg, names, deterministic=True)
+    assert capped == everything > 1000
+    a = trimesh.load(tmp_path / "all.ply").vertices
+    b = trimesh.load(tmp_path / "capped.ply").vertices
+    np.testing.assert_allclose(np.sort(a, axis=0), np.sort(b, axis=0), atol=1e-6)
+    cfg.fusion.cache_size_gb = 0
+    with pytest.raises(ValueError, match="cache_size_gb must be > 0 or null"):
+        fusion_options(cfg)
 
 
 def test_global_ba_schedule_reaches_the_mapper():
