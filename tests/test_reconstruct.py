@@ -379,12 +379,10 @@ def test_fusion_of_plane_depth_maps_lies_on_the_plane(tmp_path):
     assert extent[0] > 6.0 and extent[1] > 4.5
 
 
-def test_mapping_and_alignment_on_a_synthetic_dataset(tmp_path):
-    """pycolmap.synthesize_dataset -> mapper -> similarity to noisy GNSS -> pose errors."""
+def synthetic_dataset(tmp_path: Path) -> tuple[Path, pycolmap.Reconstruction]:
+    """pycolmap's synthetic 30-image, 300-point pinhole dataset in ``tmp_path/database.db``, and its truth."""
     options = pycolmap.SyntheticDatasetOptions()
-    options.num_rigs = 1
-    options.num_cameras_per_rig = 1
-    options.num_frames_per_rig = 30
+    options.num_rigs, options.num_cameras_per_rig, options.num_frames_per_rig = 1, 1, 30
     options.num_points3D = 300
     options.camera_model_id = pycolmap.CameraModelId.PINHOLE
     options.camera_params = [1000.0, 1000.0, 512.0, 384.0]
@@ -394,6 +392,12 @@ def test_mapping_and_alignment_on_a_synthetic_dataset(tmp_path):
     pycolmap.set_random_seed(0)
     with pycolmap.Database.open(database_path) as db:
         truth = pycolmap.synthesize_dataset(options, db)
+    return database_path, truth
+
+
+def test_mapping_and_alignment_on_a_synthetic_dataset(tmp_path):
+    """pycolmap.synthesize_dataset -> mapper -> similarity to noisy GNSS -> pose errors."""
+    database_path, truth = synthetic_dataset(tmp_path)
     names, rotations, translations = [], [], []
     for image_id in sorted(truth.reg_image_ids()):
         image = truth.image(image_id)
@@ -545,17 +549,7 @@ def test_prior_position_settings_reach_the_mapper():
 def test_global_mapper_models_come_back_in_the_gnss_frame_with_the_prior_ba(tmp_path):
     """The global mapper has no GNSS term; the pose-prior bundle adjustment after it puts the model
     in the priors' frame (no similarity fit of ours), cameras closer to the truth than the fixes."""
-    options = pycolmap.SyntheticDatasetOptions()
-    options.num_rigs, options.num_cameras_per_rig, options.num_frames_per_rig = 1, 1, 30
-    options.num_points3D = 300
-    options.camera_model_id = pycolmap.CameraModelId.PINHOLE
-    options.camera_params = [1000.0, 1000.0, 512.0, 384.0]
-    options.sensor_from_rig_translation_stddev = 0.0
-    options.sensor_from_rig_rotation_stddev = 0.0
-    database_path = tmp_path / "database.db"
-    pycolmap.set_random_seed(0)
-    with pycolmap.Database.open(database_path) as db:
-        truth = pycolmap.synthesize_dataset(options, db)
+    database_path, truth = synthetic_dataset(tmp_path)
     ids = sorted(truth.reg_image_ids())
     names = [truth.image(i).name for i in ids]
     positions = np.array([truth.image(i).projection_center() for i in ids])
