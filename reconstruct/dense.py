@@ -508,6 +508,18 @@ def write_maps(workspace: Path, name: str, depth: np.ndarray, normals: np.ndarra
     write_atomic(stereo / "normal_maps" / f"{name}{DEPTH_SUFFIX}", lambda p: normal_map.write(p))
 
 
+def read_maps(workspace: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """A view's geometric depth map (H, W; 0 = none) and normal map (H, W, 3) as ``write_maps`` wrote."""
+    stereo = Path(workspace) / "stereo"
+    depth_map, normal_map = pycolmap.DepthMap(), pycolmap.NormalMap()
+    depth_map.read(stereo / "depth_maps" / f"{name}{DEPTH_SUFFIX}")
+    normal_map.read(stereo / "normal_maps" / f"{name}{DEPTH_SUFFIX}")
+    depth = depth_map.to_array()
+    # The file is planar (channel by channel); pycolmap hands the buffer back verbatim.
+    normals = normal_map.to_array().reshape(3, *depth.shape).transpose(1, 2, 0)
+    return depth, np.ascontiguousarray(normals)
+
+
 def compute_depth_maps_cpu(workspace: Path, cfg: Mapping) -> dict[str, int]:
     """CPU back-end: SGBM depth + normal maps for every view that has partners; return valid-pixel counts."""
     workspace = Path(workspace)
@@ -590,12 +602,7 @@ def compute_depth_maps_cuda(workspace: Path, cfg: Mapping) -> dict[str, int]:
 
 
 def fusion_options(cfg: Mapping, deterministic: bool = False) -> pycolmap.StereoFusionOptions:
-    """COLMAP's fusion options from the ``reconstruct.dense`` config.
-
-    ``fusion.cache_size_gb`` bounds the memory of the maps and images fusion holds (COLMAP's cached
-    workspace); null loads every view at once, about 15 MB a 1024 x 768 view (a 1343-view flight:
-    21 GB, more than the machine had).
-    """
+    """COLMAP's fusion options from the ``reconstruct.dense`` config."""
     fcfg = cfg["fusion"]
     options = pycolmap.StereoFusionOptions()
     options.min_num_pixels = int(fcfg["min_num_pixels"])
@@ -603,15 +610,72 @@ def fusion_options(cfg: Mapping, deterministic: bool = False) -> pycolmap.Stereo
     options.max_depth_error = float(fcfg["max_depth_error"])
     options.max_normal_error = float(fcfg["max_normal_error"])
     options.max_image_size = int(cfg["max_image_size"])
-    cache_gb = fcfg.get("cache_size_gb")
-    if cache_gb is not None:
-        if not float(cache_gb) > 0:
-            raise ValueError(f"reconstruct.dense.fusion.cache_size_gb must be > 0 or null, got {cache_gb}")
-        options.use_cache = True
-        options.cache_size = float(cache_gb)
     if deterministic:
         options.num_threads = 1
     return options
+
+
+# What COLMAP's fusion holds per view, in bytes per pixel: the RGB image (3, always at full size),
+# and per depth-map pixel the depth (4), the normal (12) and the "already fused" mask (1).
+FUSION_IMAGE_BYTES_PER_PX = 3
+FUSION_MAP_BYTES_PER_PX = 17
+
+
+def fusion_map_scale(map_pixels: int, image_pixels: int, max_memory_gb: float | None) -> float:
+    """The factor (<= 1) on the depth maps' width and height that keeps fusion within
+    ``max_memory_gb`` (GB) for maps of ``map_pixels`` and images of ``image_pixels`` in all."""
+    if max_memory_gb is None:
+        return 1.0
+    budget = float(max_memory_gb) * 1e9
+    images = FUSION_IMAGE_BYTES_PER_PX * image_pixels
+    maps = FUSION_MAP_BYTES_PER_PX * map_pixels
+    if images + maps <= budget:
+        return 1.0
+    if images >= 0.5 * budget:
+        raise ValueError(
+            f"fusion of these views needs {images / 1e9:.1f} GB for their images alone; "
+            f"reconstruct.dense.fusion.max_memory_gb={max_memory_gb} is too small"
+        )
+    return math.sqrt((budget - images) / maps)
+
+
+def shrink_maps(workspace: Path, name: str, scale: float) -> None:
+    """Replace a view's depth and normal maps by ``scale`` times their size, each pixel the map's
+    nearest one (no blending across depth edges). COLMAP's fusion scales the intrinsics by the
+    ratio of map to image size, under which map pixel u looks along the ray of source pixel u / ratio."""
+    depth, normals = read_maps(workspace, name)
+    height, width = depth.shape
+    new_height, new_width = max(1, round(height * scale)), max(1, round(width * scale))
+    rows = np.clip(np.rint(np.arange(new_height) * height / new_height), 0, height - 1).astype(int)
+    cols = np.clip(np.rint(np.arange(new_width) * width / new_width), 0, width - 1).astype(int)
+    write_maps(workspace, name, depth[np.ix_(rows, cols)], normals[np.ix_(rows, cols)])
+
+
+def fit_maps_to_fusion_memory(workspace: Path, names, cfg: Mapping) -> float:
+    """Shrink the maps of ``names`` in place so fusion fits ``fusion.max_memory_gb``; return the scale.
+
+    COLMAP's fusion holds every view at once (~16 MB a 1024 x 768 view: Yan's 1343-view tomb flight
+    needed 21 GB). Its own cap (a cached workspace) fuses on one thread through a locked cache per
+    pixel, which did not finish the first of those images in 5 min.
+    """
+    views = read_views(workspace)
+    image_pixels = sum(views[n].width * views[n].height for n in names)
+    map_pixels = 0
+    for name in names:
+        header = (Path(workspace) / "stereo" / "depth_maps" / f"{name}{DEPTH_SUFFIX}").read_bytes()[:64]
+        width, height = (int(v) for v in header.split(b"&")[:2])
+        map_pixels += width * height
+    scale = fusion_map_scale(map_pixels, image_pixels, cfg["fusion"].get("max_memory_gb"))
+    if scale < 1.0:
+        log.info(
+            "fusion: %d views need %.1f GB; depth and normal maps shrunk to %.0f %% of their size",
+            len(names),
+            (FUSION_IMAGE_BYTES_PER_PX * image_pixels + FUSION_MAP_BYTES_PER_PX * map_pixels) / 1e9,
+            100 * scale,
+        )
+        for name in tqdm(names, desc="shrink maps", unit="view"):
+            shrink_maps(workspace, name, scale)
+    return scale
 
 
 def fuse(workspace: Path, output_ply: Path, cfg: Mapping, names, deterministic: bool = False) -> int:
@@ -648,7 +712,9 @@ def dense_reconstruct(
         deterministic: the same cloud, bit for bit, from the same model and images (see ``fuse``).
 
     Returns:
-        ``backend``, ``dense_time_s`` (s), ``n_depth_maps``, ``n_dense_points``, ``dense_path``.
+        ``backend``, ``dense_time_s`` (s), ``n_depth_maps``, ``n_dense_points``,
+        ``fusion_map_scale`` (1 unless the maps were shrunk to fit ``fusion.max_memory_gb``),
+        ``dense_path``.
     """
     backend = select_backend(str(cfg["backend"]))
     start = time.perf_counter()
@@ -660,14 +726,16 @@ def dense_reconstruct(
         valid = compute_depth_maps_cpu(workspace, cfg)
     names = [n for n, count in valid.items() if count > 0]
     output_ply = Path(out_dir) / "dense.ply"
-    n_points = 0
+    n_points, map_scale = 0, 1.0
     if names:
+        map_scale = fit_maps_to_fusion_memory(workspace, names, cfg)
         n_points = _fuse_atomic(workspace, output_ply, cfg, names, deterministic)
     return {
         "backend": backend,
         "dense_time_s": time.perf_counter() - start,
         "n_depth_maps": len(names),
         "n_dense_points": n_points,
+        "fusion_map_scale": map_scale,
         "dense_path": str(output_ply) if names else None,
     }
 

@@ -31,7 +31,7 @@ import pycolmap
 import trimesh
 
 from reconstruct.align import georeference_models, pose_errors
-from reconstruct.dense import dense_reconstruct
+from reconstruct.dense import FUSION_IMAGE_BYTES_PER_PX, FUSION_MAP_BYTES_PER_PX, dense_reconstruct
 from reconstruct.errors import ReconstructionError
 from reconstruct.flight import CAMERAS_FILE, Flight, read_flight, simulate_gnss
 from reconstruct.proxy import poisson_proxy
@@ -59,8 +59,8 @@ FLIGHT_CONFIG_KEYS = (
 OUTPUT_ONLY_KEYS = ("keep_dense_workspace",)
 # sfm.mapping settings only the global mapper reads.
 GLOBAL_ONLY_MAPPING_KEYS = ("global_prior_ba", "global_prior_ba_max_iterations")
-# dense.fusion settings that bound resources, not results.
-RESOURCE_ONLY_FUSION_KEYS = ("cache_size_gb",)
+# dense.fusion's memory budget changes a cloud only for a flight whose fusion would exceed it.
+FUSION_BUDGET_KEY = "max_memory_gb"
 
 
 def _plain(value):
@@ -77,11 +77,14 @@ def _plain(value):
     return value
 
 
-def _in_effect(section: str, value):
+def _in_effect(section: str, value, fusion_bytes: float = 0.0):
     # The other mapper's settings cannot change a model: a new global-only setting must not move
-    # the cache keys of incremental runs (their proxies stay valid). Nor can fusion's memory cap.
+    # the cache keys of incremental runs (their proxies stay valid). Nor can a fusion memory budget
+    # the flight's fusion (``fusion_bytes``, bytes) stays within.
     if section == "dense" and isinstance(value, dict) and isinstance(value.get("fusion"), dict):
-        fusion = {k: v for k, v in value["fusion"].items() if k not in RESOURCE_ONLY_FUSION_KEYS}
+        budget = value["fusion"].get(FUSION_BUDGET_KEY)
+        binds = budget is not None and fusion_bytes > float(budget) * 1e9
+        fusion = {k: v for k, v in value["fusion"].items() if k != FUSION_BUDGET_KEY or binds}
         return {**value, "fusion": fusion}
     if section != "sfm" or not isinstance(value, dict) or not isinstance(value.get("mapping"), dict):
         return value
@@ -96,6 +99,14 @@ def proxy_settings(cfg: Mapping) -> dict:
     return {key: _in_effect(key, value) for key, value in _plain(cfg).items() if key not in OUTPUT_ONLY_KEYS}
 
 
+def flight_fusion_bytes(n_images: int, intrinsics: Mapping, dense_cfg: Mapping) -> float:
+    """What fusing every image of a flight would hold in memory (bytes), at the dense image size."""
+    width, height = int(intrinsics["width"]), int(intrinsics["height"])
+    shrink = min(1.0, int(dense_cfg["max_image_size"]) / max(width, height))
+    pixels = n_images * round(width * shrink) * round(height * shrink)
+    return pixels * (FUSION_IMAGE_BYTES_PER_PX + FUSION_MAP_BYTES_PER_PX)
+
+
 def flight_content_key(image_dir: Path, flight: Flight, cfg: Mapping, seed: int) -> str:
     """SHA-256 of the image bytes, the cameras, the relevant config, the seed, pycolmap's version.
 
@@ -103,8 +114,9 @@ def flight_content_key(image_dir: Path, flight: Flight, cfg: Mapping, seed: int)
     the renderer's timings in it differ on every render of the same flight.
     """
     digest = hashlib.sha256()
-    config = {key: _in_effect(key, _plain(cfg[key])) for key in FLIGHT_CONFIG_KEYS}
     cameras = json.loads((Path(image_dir) / CAMERAS_FILE).read_text())
+    fusion_bytes = flight_fusion_bytes(len(flight.names), cameras["intrinsics"], cfg["dense"])
+    config = {key: _in_effect(key, _plain(cfg[key]), fusion_bytes) for key in FLIGHT_CONFIG_KEYS}
     header = {
         "config": config,
         "seed": int(seed),
@@ -281,6 +293,7 @@ def _reconstruct(
         "dense_cpu_s": clock.cpu_s,
         "n_depth_maps": dense["n_depth_maps"],
         "n_dense_points": dense["n_dense_points"],
+        "dense_fusion_map_scale": dense["fusion_map_scale"],
     }
     if dense["dense_path"] is None or dense["n_dense_points"] == 0:
         raise ReconstructionError(

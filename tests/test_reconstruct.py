@@ -26,11 +26,14 @@ from reconstruct.dense import (
     View,
     consistent_depth,
     disparity_search_range,
+    fit_maps_to_fusion_memory,
     fuse,
-    fusion_options,
+    fusion_map_scale,
     normals_from_depth,
     pair_depth,
     prepare_workspace,
+    read_maps,
+    shrink_maps,
     textured_pixels,
     write_maps,
 )
@@ -333,8 +336,10 @@ def test_textured_pixels_by_local_deviation():
         textured_pixels(gray, 0, 2.0)
 
 
-def test_fusion_of_plane_depth_maps_lies_on_the_plane(tmp_path):
-    """Exact depth maps of z = 0.5 from a 3x3 nadir grid, normals from depth, COLMAP fusion."""
+@pytest.mark.parametrize("map_scale", [1.0, 0.5])
+def test_fusion_of_plane_depth_maps_lies_on_the_plane(tmp_path, map_scale):
+    """Exact depth maps of z = 0.5 from a 3x3 nadir grid, normals from depth, COLMAP fusion; with
+    a memory budget that shrinks the maps to half, a quarter of the points on the same plane."""
     intr = Intrinsics(160, 120, 60.0)
     plane_z = 0.5
     positions = [(x, y) for x in (-1.5, 0.0, 1.5) for y in (-1.0, 0.0, 1.0)]
@@ -366,12 +371,18 @@ def test_fusion_of_plane_depth_maps_lies_on_the_plane(tmp_path):
         write_maps(workspace, view.name, depth, normals_from_depth(depth, view.K, window=5))
     (workspace / "sparse").mkdir()
     rec.write(workspace / "sparse")
-    n_points = fuse(workspace, tmp_path / "fused.ply", reconstruct_cfg().dense, [v.name for v in views])
+    cfg = reconstruct_cfg().dense
+    pixels = len(views) * intr.width * intr.height
+    # Images held at full size (3 bytes a pixel), maps at map_scale squared (17).
+    cfg.fusion.max_memory_gb = pixels * (3 + 17 * map_scale**2) / 1e9
+    names = [v.name for v in views]
+    assert fit_maps_to_fusion_memory(workspace, names, cfg) == pytest.approx(map_scale)
+    n_points = fuse(workspace, tmp_path / "fused.ply", cfg, names)
     import open3d as o3d
 
     cloud = o3d.io.read_point_cloud(str(tmp_path / "fused.ply"))
     points, normals = np.asarray(cloud.points), np.asarray(cloud.normals)
-    assert n_points == len(points) > 5000
+    assert n_points == len(points) > 5000 * map_scale**2
     assert np.abs(points[:, 2] - plane_z).max() < 1e-3
     assert np.abs(normals[:, 2]).min() > 0.999
     # The cloud spans the union of the footprints (about 5.8 m x 4.6 m at 9.5 m with a 60 deg lens).
@@ -570,25 +581,39 @@ def test_global_mapper_models_come_back_in_the_gnss_frame_with_the_prior_ba(tmp_
     assert np.median(np.linalg.norm(np.array([centre[n] for n in names]) - positions, axis=1)) > 10 * sigma
 
 
-def test_fusion_memory_cap_gives_the_same_cloud(box_reconstruction, tmp_path):
-    """Fusion through COLMAP's cached workspace (views loaded on demand) fuses the same points as
-    loading every view at once."""
-    out_dir, record = box_reconstruction
-    workspace = out_dir / "dense"
-    names = sorted(p.name for p in (workspace / "images").iterdir())
-    cfg = reconstruct_cfg().dense
-    assert cfg.fusion.cache_size_gb is None and not fusion_options(cfg).use_cache
-    everything = fuse(workspace, tmp_path / "all.ply", cfg, names, deterministic=True)
-    cfg.fusion.cache_size_gb = 0.05  # COLMAP's cached workspace (the 33 small views fit)
-    assert fusion_options(cfg).use_cache and fusion_options(cfg).cache_size == 0.05
-    capped = fuse(workspace, tmp_path / "capped.ply", cfg, names, deterministic=True)
-    assert capped == everything > 1000
-    a = trimesh.load(tmp_path / "all.ply").vertices
-    b = trimesh.load(tmp_path / "capped.ply").vertices
-    np.testing.assert_allclose(np.sort(a, axis=0), np.sort(b, axis=0), atol=1e-6)
-    cfg.fusion.cache_size_gb = 0
-    with pytest.raises(ValueError, match="cache_size_gb must be > 0 or null"):
-        fusion_options(cfg)
+def test_fusion_map_scale_fits_the_budget():
+    # 100 views of 1000 x 1000: images 0.3 GB, maps 1.7 GB.
+    n = 100 * 1000 * 1000
+    assert fusion_map_scale(n, n, None) == 1.0
+    assert fusion_map_scale(n, n, 2.0) == 1.0
+    scale = fusion_map_scale(n, n, 1.0)
+    assert scale == pytest.approx(np.sqrt(0.7 / 1.7))
+    assert 3 * n + 17 * n * scale**2 == pytest.approx(1.0e9)
+    with pytest.raises(ValueError, match="max_memory_gb=0.5 is too small"):
+        fusion_map_scale(n, n, 0.5)
+
+
+def test_shrunk_maps_keep_each_pixel_on_its_ray(tmp_path):
+    """A tilted plane's exact maps shrunk to half: every map pixel, cast through the intrinsics
+    COLMAP's fusion scales by the map-to-image ratio, lands on the plane."""
+    intr = Intrinsics(160, 120, 60.0)
+    view = plane_views(intr, [(0.3, -0.2)], height=10.0)[0]
+    u, v = np.meshgrid(np.arange(view.width, dtype=float), np.arange(view.height, dtype=float))
+    rays = (np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(view.K).T) @ view.rotation
+    # Plane z = 0.5 + 0.2 x - 0.1 y: depth along each pixel's ray from the camera centre.
+    normal, offset = np.array([-0.2, 0.1, 1.0]), 0.5
+    depth = ((offset - view.center @ normal) / (rays @ normal)).astype(np.float32)
+    write_maps(tmp_path, view.name, depth, np.broadcast_to([0.0, 0.0, -1.0], depth.shape + (3,)))
+    shrink_maps(tmp_path, view.name, 0.5)
+    small, normals = read_maps(tmp_path, view.name)
+    assert small.shape == (60, 80) and normals.shape == (60, 80, 3)
+    np.testing.assert_allclose(normals[..., 2], -1.0)
+    K = view.K.copy()
+    K[:2] *= 0.5
+    u, v = np.meshgrid(np.arange(80, dtype=float), np.arange(60, dtype=float))
+    rays = (np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T) @ view.rotation
+    points = view.center + rays * small[..., None]
+    np.testing.assert_allclose(points @ normal, offset, atol=1e-4)
 
 
 def test_global_ba_schedule_reaches_the_mapper():
@@ -704,6 +729,11 @@ def test_reconstruct_flight_reuses_unchanged_outputs(box_flight, box_reconstruct
     assert flight_content_key(box_flight, flight, reconstruct_cfg(), 1) != key
     # The proxy settings do not touch the flight's reconstruction.
     assert flight_content_key(box_flight, flight, reconstruct_cfg(**{"proxy.face_budget": 10}), 0) == key
+    # Fusing the 33 views of 320 x 240 holds 51 MB: a budget above that changes nothing, one below does.
+    budget = "dense.fusion.max_memory_gb"
+    assert flight_content_key(box_flight, flight, reconstruct_cfg(**{budget: 0.06}), 0) == key
+    assert flight_content_key(box_flight, flight, reconstruct_cfg(**{budget: None}), 0) == key
+    assert flight_content_key(box_flight, flight, reconstruct_cfg(**{budget: 0.04}), 0) != key
 
 
 def test_build_proxy_covers_the_boxes_and_refuses_partial_models(box_flight, box_reconstruction, tmp_path):
