@@ -4,7 +4,7 @@ settings, each timed (wall and CPU: process + children) and scored against the s
     python -m experiments.bench_dense study/default_v3/tomb/ours/seed0 --scene tomb \\
         --variant default= --variant partners3=num_partners=3 \\
         --variant small=max_image_size=768,num_partners=3 \\
-        --variant fit2gb=fusion.max_memory_gb=2
+        --variant chunked=fusion.max_memory_gb=2
 
 A variant is ``NAME=KEY=VALUE,KEY=VALUE`` over ``conf/reconstruct/default.yaml``'s ``dense`` section
 (``NAME=`` alone: the defaults). Every variant starts from the same ``recon/sparse`` and
@@ -59,7 +59,6 @@ def run_variant(run_dir: Path, out_dir: Path, overrides: list[str], scene, eval_
         "dense_cpu_s": clock.cpu_s,
         "n_depth_maps": dense["n_depth_maps"],
         "n_dense_points": dense["n_dense_points"],
-        "fusion_map_scale": dense["fusion_map_scale"],
     }
     metrics = evaluate_reconstruction(dense["dense_path"], scene, eval_settings, out_dir / "eval")
     return record | {key: metrics.get(key) for key in REPORTED}
@@ -84,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
 
     scene = load_scene_by_name(args.scene)
     settings = load_settings("default", [], no_vis=True)
-    header = f"{'variant':>14} {'wall s':>7} {'cpu s':>7} {'maps':>5} {'scale':>5} {'points':>9} " + " ".join(
+    header = f"{'variant':>14} {'wall s':>7} {'cpu s':>7} {'maps':>5} {'points':>9} " + " ".join(
         f"{k:>15}" for k in REPORTED
     )
     print(f"{args.run_dir} ({args.scene}), {os.cpu_count()} cores\n{header}", flush=True)
@@ -98,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
         rows[name] = record | {"overrides": overrides}
         print(
             f"{name:>14} {record['dense_time_s']:>7.1f} {record['dense_cpu_s']:>7.1f} "
-            f"{record['n_depth_maps']:>5d} {record['fusion_map_scale']:>5.2f} {record['n_dense_points']:>9d} "
+            f"{record['n_depth_maps']:>5d} {record['n_dense_points']:>9d} "
             + " ".join(f"{record[k] if record[k] is not None else float('nan'):>15.4g}" for k in REPORTED),
             flush=True,
         )

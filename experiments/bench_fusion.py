@@ -1,10 +1,9 @@
-"""Fusion's memory on a finished dense workspace: fit the maps to ``fusion.max_memory_gb``, fuse,
-and print wall time, CPU time and peak resident memory.
+"""Fusion's memory on a finished dense workspace: fuse within ``fusion.max_memory_gb`` (in chunks
+of views when the flight needs more) and print wall time, CPU time and peak resident memory.
 
     python -m experiments.bench_fusion RUN/recon/dense --out study/fusion/dense.ply [--max-memory-gb 14]
 
-The maps are shrunk in place when the budget binds (as a cell would before fusing): run it on a
-workspace you no longer need at full size. Quote the line it prints.
+Quote the line it prints; score the cloud with ``python -m evaluate``.
 """
 
 from __future__ import annotations
@@ -28,7 +27,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     from omegaconf import OmegaConf
 
-    from reconstruct.dense import DEPTH_SUFFIX, _fuse_atomic, fit_maps_to_fusion_memory
+    from reconstruct.dense import DEPTH_SUFFIX, _fuse_atomic
 
     maps = args.workspace / "stereo" / "depth_maps"
     names = sorted(p.name[: -len(DEPTH_SUFFIX)] for p in maps.glob(f"*{DEPTH_SUFFIX}"))
@@ -38,9 +37,6 @@ def main(argv: list[str] | None = None) -> int:
     cfg = OmegaConf.load(ROOT / "conf" / "reconstruct" / "default.yaml").dense
     if args.max_memory_gb is not None:
         cfg.fusion.max_memory_gb = args.max_memory_gb
-    wall, cpu = time.perf_counter(), time.process_time()
-    scale = fit_maps_to_fusion_memory(args.workspace, names, cfg)
-    print(f"maps at {scale:.3f} of their size: {time.perf_counter() - wall:.1f} s wall", flush=True)
     wall, cpu = time.perf_counter(), time.process_time()
     args.out.parent.mkdir(parents=True, exist_ok=True)
     n_points = _fuse_atomic(args.workspace, args.out, cfg, names, deterministic=False)

@@ -508,18 +508,6 @@ def write_maps(workspace: Path, name: str, depth: np.ndarray, normals: np.ndarra
     write_atomic(stereo / "normal_maps" / f"{name}{DEPTH_SUFFIX}", lambda p: normal_map.write(p))
 
 
-def read_maps(workspace: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
-    """A view's geometric depth map (H, W; 0 = none) and normal map (H, W, 3) as ``write_maps`` wrote."""
-    stereo = Path(workspace) / "stereo"
-    depth_map, normal_map = pycolmap.DepthMap(), pycolmap.NormalMap()
-    depth_map.read(stereo / "depth_maps" / f"{name}{DEPTH_SUFFIX}")
-    normal_map.read(stereo / "normal_maps" / f"{name}{DEPTH_SUFFIX}")
-    depth = depth_map.to_array()
-    # The file is planar (channel by channel); pycolmap hands the buffer back verbatim.
-    normals = normal_map.to_array().reshape(3, *depth.shape).transpose(1, 2, 0)
-    return depth, np.ascontiguousarray(normals)
-
-
 def compute_depth_maps_cpu(workspace: Path, cfg: Mapping) -> dict[str, int]:
     """CPU back-end: SGBM depth + normal maps for every view that has partners; return valid-pixel counts."""
     workspace = Path(workspace)
@@ -610,93 +598,115 @@ def fusion_options(cfg: Mapping, deterministic: bool = False) -> pycolmap.Stereo
     options.max_depth_error = float(fcfg["max_depth_error"])
     options.max_normal_error = float(fcfg["max_normal_error"])
     options.max_image_size = int(cfg["max_image_size"])
+    if fcfg.get("check_num_images") is not None:  # COLMAP's default (50) unless set
+        options.check_num_images = int(fcfg["check_num_images"])
     if deterministic:
         options.num_threads = 1
     return options
 
 
-# What COLMAP's fusion holds per view, in bytes per pixel: the RGB image (3, always at full size),
-# and per depth-map pixel the depth (4), the normal (12) and the "already fused" mask (1).
-FUSION_IMAGE_BYTES_PER_PX = 3
-FUSION_MAP_BYTES_PER_PX = 17
+# What COLMAP's fusion holds per view, in bytes per pixel: the RGB image (3), the depth (4), the
+# normal (12) and the "already fused" mask (1).
+FUSION_BYTES_PER_PX = 20
 
 
-def fusion_map_scale(map_pixels: int, image_pixels: int, max_memory_gb: float | None) -> float:
-    """The factor (<= 1) on the depth maps' width and height that keeps fusion within
-    ``max_memory_gb`` (GB) for maps of ``map_pixels`` and images of ``image_pixels`` in all."""
+def fusion_chunk_size(workspace: Path, names, max_memory_gb: float | None) -> int | None:
+    """How many views a fusion chunk may hold within ``max_memory_gb`` (GB); None when every view
+    of ``names`` fits at once (or there is no budget)."""
     if max_memory_gb is None:
-        return 1.0
-    budget = float(max_memory_gb) * 1e9
-    images = FUSION_IMAGE_BYTES_PER_PX * image_pixels
-    maps = FUSION_MAP_BYTES_PER_PX * map_pixels
-    if images + maps <= budget:
-        return 1.0
-    if images >= 0.5 * budget:
-        raise ValueError(
-            f"fusion of these views needs {images / 1e9:.1f} GB for their images alone; "
-            f"reconstruct.dense.fusion.max_memory_gb={max_memory_gb} is too small"
-        )
-    return math.sqrt((budget - images) / maps)
-
-
-def shrink_maps(workspace: Path, name: str, scale: float) -> None:
-    """Replace a view's depth and normal maps by ``scale`` times their size, each pixel the map's
-    nearest one (no blending across depth edges). COLMAP's fusion scales the intrinsics by the
-    ratio of map to image size, under which map pixel u looks along the ray of source pixel u / ratio."""
-    depth, normals = read_maps(workspace, name)
-    height, width = depth.shape
-    new_height, new_width = max(1, round(height * scale)), max(1, round(width * scale))
-    rows = np.clip(np.rint(np.arange(new_height) * height / new_height), 0, height - 1).astype(int)
-    cols = np.clip(np.rint(np.arange(new_width) * width / new_width), 0, width - 1).astype(int)
-    write_maps(workspace, name, depth[np.ix_(rows, cols)], normals[np.ix_(rows, cols)])
-
-
-def fit_maps_to_fusion_memory(workspace: Path, names, cfg: Mapping) -> float:
-    """Shrink the maps of ``names`` in place so fusion fits ``fusion.max_memory_gb``; return the scale.
-
-    COLMAP's fusion holds every view at once (~16 MB a 1024 x 768 view: Yan's 1343-view tomb flight
-    needed 21 GB). Its own cap (a cached workspace) fuses on one thread through a locked cache per
-    pixel, which did not finish the first of those images in 5 min.
-    """
+        return None
     views = read_views(workspace)
-    image_pixels = sum(views[n].width * views[n].height for n in names)
-    map_pixels = 0
-    for name in names:
-        header = (Path(workspace) / "stereo" / "depth_maps" / f"{name}{DEPTH_SUFFIX}").read_bytes()[:64]
-        width, height = (int(v) for v in header.split(b"&")[:2])
-        map_pixels += width * height
-    scale = fusion_map_scale(map_pixels, image_pixels, cfg["fusion"].get("max_memory_gb"))
-    if scale < 1.0:
-        log.info(
-            "fusion: %d views need %.1f GB; depth and normal maps shrunk to %.0f %% of their size",
-            len(names),
-            (FUSION_IMAGE_BYTES_PER_PX * image_pixels + FUSION_MAP_BYTES_PER_PX * map_pixels) / 1e9,
-            100 * scale,
+    view_bytes = [FUSION_BYTES_PER_PX * views[n].width * views[n].height for n in names]
+    budget = float(max_memory_gb) * 1e9
+    if sum(view_bytes) <= budget:
+        return None
+    max_views = int(budget // max(view_bytes))
+    if max_views < 2:
+        raise ValueError(
+            f"reconstruct.dense.fusion.max_memory_gb={max_memory_gb} holds fewer than two views "
+            f"({max(view_bytes) / 1e9:.3f} GB each)"
         )
-        for name in tqdm(names, desc="shrink maps", unit="view"):
-            shrink_maps(workspace, name, scale)
-    return scale
+    return max_views
 
 
 def fuse(workspace: Path, output_ply: Path, cfg: Mapping, names, deterministic: bool = False) -> int:
     """Fuse the workspace's geometric depth/normal maps of ``names`` into ``output_ply``; return the
     number of fused points. The PLY carries positions, normals and colours (model frame, metres).
 
+    Above ``fusion.max_memory_gb`` the views are fused in chunks (``reconstruct.fusion_chunks``).
     ``deterministic`` fuses on one thread: COLMAP's fusion threads share the "pixel already fused"
     masks, so which thread claims a pixel first (and so the cloud) changed from run to run.
     """
     workspace = Path(workspace)
+    names = sorted(names)
+    max_views = fusion_chunk_size(workspace, names, cfg["fusion"].get("max_memory_gb"))
+    if max_views is None:
+        return _fuse_views(workspace, output_ply, cfg, names, deterministic)
+    return _fuse_in_chunks(workspace, output_ply, cfg, names, max_views, deterministic)
+
+
+def _fuse_views(workspace: Path, output_ply: Path, cfg: Mapping, names, deterministic: bool) -> int:
+    """One COLMAP fusion of ``names`` (all held in memory at once) into ``output_ply``."""
     write_text_atomic(workspace / "stereo" / "fusion.cfg", "".join(f"{n}\n" for n in sorted(names)))
-    options = fusion_options(cfg, deterministic)
     fused = pycolmap.stereo_fusion(
         output_ply,
         workspace,
         workspace_format="COLMAP",
         input_type="geometric",
-        options=options,
+        options=fusion_options(cfg, deterministic),
         output_type="PLY",
     )
     return int(fused.num_points3D()) if hasattr(fused, "num_points3D") else -1
+
+
+def _fuse_in_chunks(
+    workspace: Path, output_ply: Path, cfg: Mapping, names: list[str], max_views: int, deterministic: bool
+) -> int:
+    import open3d as o3d
+
+    from reconstruct import fusion_chunks as fc
+
+    sparse_dir = workspace / "sparse"
+    # COLMAP's fusion walks from a view to its check_num_images most overlapping ones: a chunk
+    # holds them for each of its own views.
+    per_view = fusion_options(cfg, deterministic).check_num_images
+    neighbours = fc.top_neighbours(fc.shared_points(sparse_dir, names), per_view)
+    chunks = fc.plan_chunks(neighbours, max_views)
+    log.info(
+        "fusion: %d views in %d chunks of at most %d (own + neighbour views: %s)",
+        len(names),
+        len(chunks),
+        max_views,
+        ", ".join(f"{len(c.own)}+{len(c.neighbours)}" for c in chunks),
+    )
+    workspace_index = {name: i for i, name in enumerate(fc.model_image_names(sparse_dir))}
+    chunk_of = np.full(len(workspace_index), -1)
+    for c, chunk in enumerate(chunks):
+        chunk_of[[workspace_index[names[v]] for v in chunk.own]] = c
+    parts: dict[str, list[np.ndarray]] = {"points": [], "normals": [], "colors": []}
+    chunk_ply = Path(output_ply).with_name(Path(output_ply).name + ".chunk.ply")
+    chunk_vis = chunk_ply.with_name(chunk_ply.name + ".vis")
+    try:
+        for c, chunk in enumerate(tqdm(chunks, desc="fusion", unit="chunk")):
+            _fuse_views(workspace, chunk_ply, cfg, [names[v] for v in chunk.views], deterministic)
+            counts, indices = fc.read_visibility(chunk_vis)
+            cloud = o3d.io.read_point_cloud(str(chunk_ply))
+            if len(cloud.points) != len(counts) or (chunk_of[indices] < 0).any():
+                raise RuntimeError(f"{chunk_vis}: does not match {chunk_ply} and the chunk's views")
+            keep = fc.owning_chunk(counts, indices, chunk_of, len(chunks)) == c
+            parts["points"].append(np.asarray(cloud.points)[keep])
+            parts["normals"].append(np.asarray(cloud.normals)[keep])
+            parts["colors"].append(np.asarray(cloud.colors)[keep])
+    finally:
+        chunk_ply.unlink(missing_ok=True)
+        chunk_vis.unlink(missing_ok=True)
+    merged = o3d.geometry.PointCloud()
+    merged.points = o3d.utility.Vector3dVector(np.concatenate(parts["points"]))
+    merged.normals = o3d.utility.Vector3dVector(np.concatenate(parts["normals"]))
+    merged.colors = o3d.utility.Vector3dVector(np.concatenate(parts["colors"]))
+    if not o3d.io.write_point_cloud(str(output_ply), merged):
+        raise OSError(f"{output_ply}: could not write the fused cloud")
+    return len(merged.points)
 
 
 def dense_reconstruct(
@@ -712,9 +722,7 @@ def dense_reconstruct(
         deterministic: the same cloud, bit for bit, from the same model and images (see ``fuse``).
 
     Returns:
-        ``backend``, ``dense_time_s`` (s), ``n_depth_maps``, ``n_dense_points``,
-        ``fusion_map_scale`` (1 unless the maps were shrunk to fit ``fusion.max_memory_gb``),
-        ``dense_path``.
+        ``backend``, ``dense_time_s`` (s), ``n_depth_maps``, ``n_dense_points``, ``dense_path``.
     """
     backend = select_backend(str(cfg["backend"]))
     start = time.perf_counter()
@@ -726,16 +734,14 @@ def dense_reconstruct(
         valid = compute_depth_maps_cpu(workspace, cfg)
     names = [n for n, count in valid.items() if count > 0]
     output_ply = Path(out_dir) / "dense.ply"
-    n_points, map_scale = 0, 1.0
+    n_points = 0
     if names:
-        map_scale = fit_maps_to_fusion_memory(workspace, names, cfg)
         n_points = _fuse_atomic(workspace, output_ply, cfg, names, deterministic)
     return {
         "backend": backend,
         "dense_time_s": time.perf_counter() - start,
         "n_depth_maps": len(names),
         "n_dense_points": n_points,
-        "fusion_map_scale": map_scale,
         "dense_path": str(output_ply) if names else None,
     }
 

@@ -31,7 +31,7 @@ import pycolmap
 import trimesh
 
 from reconstruct.align import georeference_models, pose_errors
-from reconstruct.dense import FUSION_IMAGE_BYTES_PER_PX, FUSION_MAP_BYTES_PER_PX, dense_reconstruct
+from reconstruct.dense import FUSION_BYTES_PER_PX, dense_reconstruct
 from reconstruct.errors import ReconstructionError
 from reconstruct.flight import CAMERAS_FILE, Flight, read_flight, simulate_gnss
 from reconstruct.proxy import poisson_proxy
@@ -104,7 +104,7 @@ def flight_fusion_bytes(n_images: int, intrinsics: Mapping, dense_cfg: Mapping) 
     width, height = int(intrinsics["width"]), int(intrinsics["height"])
     shrink = min(1.0, int(dense_cfg["max_image_size"]) / max(width, height))
     pixels = n_images * round(width * shrink) * round(height * shrink)
-    return pixels * (FUSION_IMAGE_BYTES_PER_PX + FUSION_MAP_BYTES_PER_PX)
+    return pixels * FUSION_BYTES_PER_PX
 
 
 def flight_content_key(image_dir: Path, flight: Flight, cfg: Mapping, seed: int) -> str:
@@ -293,7 +293,6 @@ def _reconstruct(
         "dense_cpu_s": clock.cpu_s,
         "n_depth_maps": dense["n_depth_maps"],
         "n_dense_points": dense["n_dense_points"],
-        "dense_fusion_map_scale": dense["fusion_map_scale"],
     }
     if dense["dense_path"] is None or dense["n_dense_points"] == 0:
         raise ReconstructionError(

@@ -26,19 +26,17 @@ from reconstruct.dense import (
     View,
     consistent_depth,
     disparity_search_range,
-    fit_maps_to_fusion_memory,
     fuse,
-    fusion_map_scale,
+    fusion_chunk_size,
     normals_from_depth,
     pair_depth,
     prepare_workspace,
-    read_maps,
-    shrink_maps,
     textured_pixels,
     write_maps,
 )
 from reconstruct.errors import ReconstructionError
 from reconstruct.flight import Flight, read_flight, simulate_gnss
+from reconstruct.fusion_chunks import owning_chunk, plan_chunks, read_visibility
 from reconstruct.pipeline import build_proxy, flight_content_key, proxy_flight_config, reconstruct_flight
 from reconstruct.proxy import degraded_ground_truth, oriented_cloud, poisson_proxy
 from reconstruct.sfm import map_reconstruction, pose_prior_pairs, sfm_options, write_pose_priors
@@ -336,10 +334,8 @@ def test_textured_pixels_by_local_deviation():
         textured_pixels(gray, 0, 2.0)
 
 
-@pytest.mark.parametrize("map_scale", [1.0, 0.5])
-def test_fusion_of_plane_depth_maps_lies_on_the_plane(tmp_path, map_scale):
-    """Exact depth maps of z = 0.5 from a 3x3 nadir grid, normals from depth, COLMAP fusion; with
-    a memory budget that shrinks the maps to half, a quarter of the points on the same plane."""
+def test_fusion_of_plane_depth_maps_lies_on_the_plane(tmp_path):
+    """Exact depth maps of z = 0.5 from a 3x3 nadir grid, normals from depth, COLMAP fusion."""
     intr = Intrinsics(160, 120, 60.0)
     plane_z = 0.5
     positions = [(x, y) for x in (-1.5, 0.0, 1.5) for y in (-1.0, 0.0, 1.0)]
@@ -371,18 +367,12 @@ def test_fusion_of_plane_depth_maps_lies_on_the_plane(tmp_path, map_scale):
         write_maps(workspace, view.name, depth, normals_from_depth(depth, view.K, window=5))
     (workspace / "sparse").mkdir()
     rec.write(workspace / "sparse")
-    cfg = reconstruct_cfg().dense
-    pixels = len(views) * intr.width * intr.height
-    # Images held at full size (3 bytes a pixel), maps at map_scale squared (17).
-    cfg.fusion.max_memory_gb = pixels * (3 + 17 * map_scale**2) / 1e9
-    names = [v.name for v in views]
-    assert fit_maps_to_fusion_memory(workspace, names, cfg) == pytest.approx(map_scale)
-    n_points = fuse(workspace, tmp_path / "fused.ply", cfg, names)
+    n_points = fuse(workspace, tmp_path / "fused.ply", reconstruct_cfg().dense, [v.name for v in views])
     import open3d as o3d
 
     cloud = o3d.io.read_point_cloud(str(tmp_path / "fused.ply"))
     points, normals = np.asarray(cloud.points), np.asarray(cloud.normals)
-    assert n_points == len(points) > 5000 * map_scale**2
+    assert n_points == len(points) > 5000
     assert np.abs(points[:, 2] - plane_z).max() < 1e-3
     assert np.abs(normals[:, 2]).min() > 0.999
     # The cloud spans the union of the footprints (about 5.8 m x 4.6 m at 9.5 m with a 60 deg lens).
@@ -581,39 +571,67 @@ def test_global_mapper_models_come_back_in_the_gnss_frame_with_the_prior_ba(tmp_
     assert np.median(np.linalg.norm(np.array([centre[n] for n in names]) - positions, axis=1)) > 10 * sigma
 
 
-def test_fusion_map_scale_fits_the_budget():
-    # 100 views of 1000 x 1000: images 0.3 GB, maps 1.7 GB.
-    n = 100 * 1000 * 1000
-    assert fusion_map_scale(n, n, None) == 1.0
-    assert fusion_map_scale(n, n, 2.0) == 1.0
-    scale = fusion_map_scale(n, n, 1.0)
-    assert scale == pytest.approx(np.sqrt(0.7 / 1.7))
-    assert 3 * n + 17 * n * scale**2 == pytest.approx(1.0e9)
-    with pytest.raises(ValueError, match="max_memory_gb=0.5 is too small"):
-        fusion_map_scale(n, n, 0.5)
+def test_fusion_chunks_cover_every_view_once_within_the_budget():
+    # Ten views in a row, each overlapping the next and the previous one.
+    neighbours = [np.array([u for u in (v - 1, v + 1) if 0 <= u < 10]) for v in range(10)]
+    chunks = plan_chunks(neighbours, max_views=4)
+    assert [(c.own.tolist(), c.neighbours.tolist()) for c in chunks] == [
+        ([0, 1, 2], [3]),
+        ([3, 4], [2, 5]),
+        ([5, 6], [4, 7]),
+        ([7, 8, 9], [6]),  # view 9 adds no view the chunk does not hold already
+    ]
+    assert sorted(np.concatenate([c.own for c in chunks]).tolist()) == list(range(10))
+    assert max(len(c.views) for c in chunks) <= 4
+    with pytest.raises(ValueError, match="max_views 2 cannot hold a view and its neighbours"):
+        plan_chunks(neighbours, 2)
 
 
-def test_shrunk_maps_keep_each_pixel_on_its_ray(tmp_path):
-    """A tilted plane's exact maps shrunk to half: every map pixel, cast through the intrinsics
-    COLMAP's fusion scales by the map-to-image ratio, lands on the plane."""
-    intr = Intrinsics(160, 120, 60.0)
-    view = plane_views(intr, [(0.3, -0.2)], height=10.0)[0]
-    u, v = np.meshgrid(np.arange(view.width, dtype=float), np.arange(view.height, dtype=float))
-    rays = (np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(view.K).T) @ view.rotation
-    # Plane z = 0.5 + 0.2 x - 0.1 y: depth along each pixel's ray from the camera centre.
-    normal, offset = np.array([-0.2, 0.1, 1.0]), 0.5
-    depth = ((offset - view.center @ normal) / (rays @ normal)).astype(np.float32)
-    write_maps(tmp_path, view.name, depth, np.broadcast_to([0.0, 0.0, -1.0], depth.shape + (3,)))
-    shrink_maps(tmp_path, view.name, 0.5)
-    small, normals = read_maps(tmp_path, view.name)
-    assert small.shape == (60, 80) and normals.shape == (60, 80, 3)
-    np.testing.assert_allclose(normals[..., 2], -1.0)
-    K = view.K.copy()
-    K[:2] *= 0.5
-    u, v = np.meshgrid(np.arange(80, dtype=float), np.arange(60, dtype=float))
-    rays = (np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T) @ view.rotation
-    points = view.center + rays * small[..., None]
-    np.testing.assert_allclose(points @ normal, offset, atol=1e-4)
+def test_a_fused_point_belongs_to_the_chunk_owning_most_of_its_views(tmp_path):
+    visibility = [[0, 1, 3], [3, 4, 0], [0, 3], [5, 2, 4], [1]]
+    words = [w for v in visibility for w in (len(v), *v)]
+    path = tmp_path / "cloud.ply.vis"
+    path.write_bytes(np.uint64(len(visibility)).tobytes() + np.array(words, dtype=np.uint32).tobytes())
+    counts, indices = read_visibility(path)
+    assert counts.tolist() == [3, 3, 2, 3, 1]
+    assert indices.tolist() == [w for v in visibility for w in v]
+    # Workspace images 0-2 are chunk 0's own views, 3-4 chunk 1's, 5 chunk 2's.
+    chunk_of = np.array([0, 0, 0, 1, 1, 2])
+    # 2 of 3 in chunk 0; 2 of 3 in chunk 1; a tie (the earlier chunk); one view each (the
+    # earlier); chunk 0's alone.
+    assert owning_chunk(counts, indices, chunk_of, 3).tolist() == [0, 1, 0, 0, 0]
+    path.write_bytes(path.read_bytes()[:-4])
+    with pytest.raises(ValueError, match="account for"):
+        read_visibility(path)
+
+
+def test_fusion_in_chunks_covers_the_single_pass_cloud(box_reconstruction, tmp_path):
+    """The 33 box views, fusion walking to 6 neighbours of each, fused in chunks of at most 16 views:
+    the surfaces of one pass, as close to the truth, a few of them twice (chunk boundaries)."""
+    out_dir, _ = box_reconstruction
+    workspace = out_dir / "dense"
+    names = sorted(p.name for p in (workspace / "images").iterdir())
+    cfg = reconstruct_cfg(**{"dense.fusion.check_num_images": 6}).dense
+    assert cfg.fusion.max_memory_gb is None and fusion_chunk_size(workspace, names, None) is None
+    single = fuse(workspace, tmp_path / "single.ply", cfg, names, deterministic=True)
+    view_gb = 20 * 320 * 240 / 1e9  # image, depth, normal and mask bytes of one 320 x 240 view
+    cfg.fusion.max_memory_gb = 16.5 * view_gb
+    assert fusion_chunk_size(workspace, names, cfg.fusion.max_memory_gb) == 16
+    chunked = fuse(workspace, tmp_path / "chunked.ply", cfg, names, deterministic=True)
+    a = trimesh.load(tmp_path / "single.ply").vertices
+    b = trimesh.load(tmp_path / "chunked.ply").vertices
+    assert (len(a), len(b)) == (single, chunked)
+    assert single <= chunked < 1.5 * single
+    from scipy.spatial import cKDTree
+
+    # GSD about 4 cm at 11 m: 95 % of the single pass's points have a chunked point within 1 GSD.
+    assert np.mean(cKDTree(b).query(a)[0] < 0.04) > 0.95
+    # And the chunked points are as close to the true boxes (90 % within 2 GSD, as one pass).
+    sample = b[np.random.default_rng(0).choice(len(b), 20000, replace=False)]
+    assert np.percentile(trimesh.proximity.closest_point(box_world_mesh(), sample)[1], 90) < 0.08
+    cfg.fusion.max_memory_gb = 1.5 * view_gb
+    with pytest.raises(ValueError, match="holds fewer than two views"):
+        fuse(workspace, tmp_path / "none.ply", cfg, names)
 
 
 def test_global_ba_schedule_reaches_the_mapper():
