@@ -12,6 +12,7 @@ Output folder of ``reconstruct_flight``::
     dense.ply      fused dense cloud in the world frame
     gnss.json      the simulated GNSS positions used as priors
     colmap.log.*   COLMAP's log
+    sfm.json       the record up to the aligned sparse model (the stage a killed run resumes from)
     recon.json     the record below plus the content key of the inputs
 """
 
@@ -43,6 +44,9 @@ from scene.io import write_atomic, write_json_atomic
 log = logging.getLogger(__name__)
 
 RECORD_FILE = "recon.json"
+# Written once the aligned sparse model is on disk: a run killed later (dense matching of a large
+# flight takes an hour on 2 cores) resumes from it when the content key is the same.
+SFM_RECORD_FILE = "sfm.json"
 PROXY_FILE = "proxy.ply"
 PROXY_RECORD_FILE = "proxy.json"
 # The config sections a flight's reconstruction depends on (the proxy section does not matter here).
@@ -203,8 +207,11 @@ def reconstruct_flight(image_dir, out_dir, cfg: Mapping, seed: int) -> dict:
         return cached | {"cached": True}
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / RECORD_FILE).unlink(missing_ok=True)
-    for old_log in out_dir.glob("colmap.log.*"):
-        old_log.unlink()
+    sparse_stage = _cached_record(out_dir, key, SFM_RECORD_FILE, ("sparse", "database.db"))
+    if sparse_stage is None:
+        (out_dir / SFM_RECORD_FILE).unlink(missing_ok=True)
+        for old_log in out_dir.glob("colmap.log.*"):
+            old_log.unlink()
 
     sigma = float(cfg["gnss"]["sigma_m"])
     gnss = simulate_gnss(flight.positions, sigma, seed)
@@ -219,7 +226,20 @@ def reconstruct_flight(image_dir, out_dir, cfg: Mapping, seed: int) -> dict:
     record: dict = {"status": "running", "n_images": len(flight), "gnss_sigma_m": sigma}
     try:
         with colmap_log_to(out_dir):
-            record |= _reconstruct(flight, out_dir, gnss, sigma, cfg, seed, record)
+            if sparse_stage is None:
+                record |= _sparse_stage(flight, out_dir, gnss, sigma, cfg, seed, record)
+                write_json_atomic(out_dir / SFM_RECORD_FILE, record | {"status": "ok", "content_key": key})
+            else:
+                log.info(
+                    "resuming %s after SfM: reusing its aligned sparse model (%d of %d registered, "
+                    "SfM %.0f s)",
+                    out_dir,
+                    sparse_stage["n_registered"],
+                    sparse_stage["n_images"],
+                    sparse_stage["align_time_s"],
+                )
+                record |= _drop(sparse_stage, ("status", "content_key")) | {"resumed_after_sfm": True}
+            record |= _dense_stage(flight, out_dir, cfg, record)
     except ReconstructionError as exc:
         exc.record = record | {"status": "failed", "cached": False} | exc.record
         write_json_atomic(out_dir / RECORD_FILE, exc.record | {"content_key": key})
@@ -230,9 +250,14 @@ def reconstruct_flight(image_dir, out_dir, cfg: Mapping, seed: int) -> dict:
     return record
 
 
-def _reconstruct(
+def _drop(record: Mapping, keys) -> dict:
+    return {k: v for k, v in record.items() if k not in keys}
+
+
+def _sparse_stage(
     flight: Flight, out_dir: Path, gnss: np.ndarray, sigma: float, cfg: Mapping, seed: int, record: dict
 ) -> dict:
+    """SfM, georeferencing and the GNSS check; writes ``sparse/``. Returns the record so far."""
     deterministic = bool(cfg["deterministic"])
     sfm = run_sfm(flight, out_dir, gnss, sigma, cfg["sfm"], seed, deterministic)
     record |= {f"{k}_time_s": v for k, v in sfm.times_s.items()}
@@ -284,9 +309,16 @@ def _reconstruct(
     _write_model_atomic(rec, sparse_dir)
     record["sparse_dir"] = str(sparse_dir)
     record["n_sparse_points"] = int(rec.num_points3D())
+    return record
 
+
+def _dense_stage(flight: Flight, out_dir: Path, cfg: Mapping, record: dict) -> dict:
+    """Depth maps and fusion on the aligned model in ``out_dir/sparse``. Returns the record so far."""
+    sparse_dir = out_dir / "sparse"
     with stage_time() as clock:
-        dense = dense_reconstruct(sparse_dir, flight.image_dir, out_dir, cfg["dense"], deterministic)
+        dense = dense_reconstruct(
+            sparse_dir, flight.image_dir, out_dir, cfg["dense"], bool(cfg["deterministic"])
+        )
     record |= {
         "dense_backend": dense["backend"],
         "dense_time_s": dense["dense_time_s"],

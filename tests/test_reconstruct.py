@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -752,6 +753,38 @@ def test_reconstruct_flight_reuses_unchanged_outputs(box_flight, box_reconstruct
     assert flight_content_key(box_flight, flight, reconstruct_cfg(**{budget: 0.06}), 0) == key
     assert flight_content_key(box_flight, flight, reconstruct_cfg(**{budget: None}), 0) == key
     assert flight_content_key(box_flight, flight, reconstruct_cfg(**{budget: 0.04}), 0) != key
+
+
+def test_a_run_killed_after_sfm_resumes_from_its_sparse_model(box_flight, box_reconstruction, tmp_path):
+    out_dir, record = box_reconstruction
+    killed = tmp_path / "recon"
+    shutil.copytree(out_dir, killed)
+    # Killed during dense matching: no cloud, no record, half a workspace.
+    for name in ("recon.json", "dense.ply"):
+        (killed / name).unlink()
+    (killed / "dense" / "stereo" / "depth_maps").mkdir(parents=True, exist_ok=True)
+    stage = json.loads((killed / "sfm.json").read_text())
+    assert stage["content_key"] == record["content_key"] and "dense_time_s" not in stage
+
+    resumed = reconstruct_flight(box_flight, killed, reconstruct_cfg(), seed=0)
+    assert resumed["resumed_after_sfm"] is True and resumed["cached"] is False
+    # SfM's record is the first run's (its times included), the sparse model untouched.
+    for key in ("n_registered", "position_error_median_m", "mapping_time_s", "align_cpu_s", "n_image_pairs"):
+        assert resumed[key] == record[key]
+    assert pycolmap.Reconstruction(killed / "sparse").num_reg_images() == record["n_registered"]
+    # Dense ran again on the same model: the same cloud up to fusion's thread order.
+    assert resumed["n_depth_maps"] == record["n_depth_maps"]
+    assert resumed["n_dense_points"] == pytest.approx(record["n_dense_points"], rel=0.02)
+    assert json.loads((killed / "recon.json").read_text())["status"] == "ok"
+
+    # Another seed is another flight key: SfM runs again, no stage is reused.
+    other = tmp_path / "other_seed"
+    shutil.copytree(killed, other)
+    (other / "recon.json").unlink()
+    again = reconstruct_flight(box_flight, other, reconstruct_cfg(), seed=1)
+    assert "resumed_after_sfm" not in again
+    assert json.loads((other / "sfm.json").read_text())["content_key"] == again["content_key"]
+    assert again["content_key"] != record["content_key"]
 
 
 def test_build_proxy_covers_the_boxes_and_refuses_partial_models(box_flight, box_reconstruction, tmp_path):
