@@ -36,7 +36,7 @@ from reconstruct.dense import FUSION_BYTES_PER_PX, dense_reconstruct
 from reconstruct.errors import ReconstructionError
 from reconstruct.flight import CAMERAS_FILE, Flight, read_flight, simulate_gnss
 from reconstruct.proxy import poisson_proxy
-from reconstruct.sfm import run_sfm
+from reconstruct.sfm import COLMAP_GLOBAL_BA_MAX_REFINEMENTS, run_sfm
 from reconstruct.timing import stage_time
 from scene.base import Box
 from scene.io import write_atomic, write_json_atomic
@@ -63,6 +63,8 @@ FLIGHT_CONFIG_KEYS = (
 OUTPUT_ONLY_KEYS = ("keep_dense_workspace",)
 # sfm.mapping settings only the global mapper reads.
 GLOBAL_ONLY_MAPPING_KEYS = ("global_prior_ba", "global_prior_ba_max_iterations")
+# sfm.mapping settings that enter a flight's key only away from COLMAP's value (added after records).
+COLMAP_VALUED_MAPPING_KEYS = {"global_ba_max_refinements": COLMAP_GLOBAL_BA_MAX_REFINEMENTS}
 # dense.fusion's memory budget changes a cloud only for a flight whose fusion would exceed it.
 FUSION_BUDGET_KEY = "max_memory_gb"
 
@@ -94,6 +96,8 @@ def _in_effect(section: str, value, fusion_bytes: float = 0.0):
         return value
     mapping = value["mapping"]
     unused = GLOBAL_ONLY_MAPPING_KEYS if mapping.get("method") != "global" else ()
+    # A setting added later at COLMAP's own value maps as before it existed: keys stay.
+    unused += tuple(k for k, colmap in COLMAP_VALUED_MAPPING_KEYS.items() if mapping.get(k) == colmap)
     return {**value, "mapping": {k: v for k, v in mapping.items() if k not in unused}}
 
 

@@ -26,6 +26,9 @@ log = logging.getLogger(__name__)
 MATCHING_METHODS = ("auto", "exhaustive", "spatial", "pose_prior", "sequential")
 PAIRS_FILE = "pairs.txt"
 MAPPING_METHODS = ("incremental", "global")
+# COLMAP's ba_global_max_refinements: bundle adjust + filter rounds per global BA of the incremental
+# mapper (it stops earlier once fewer than 0.05 % of the observations change).
+COLMAP_GLOBAL_BA_MAX_REFINEMENTS = 5
 
 
 @dataclass
@@ -137,6 +140,10 @@ def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> Sfm
     incremental.ba_global_frames_ratio = growth
     incremental.ba_global_points_ratio = growth
     incremental.ba_global_max_num_iterations = int(pcfg["global_ba_max_iterations"])
+    refinements = int(pcfg.get("global_ba_max_refinements", COLMAP_GLOBAL_BA_MAX_REFINEMENTS))
+    if refinements < 1:
+        raise ValueError(f"reconstruct.sfm.mapping.global_ba_max_refinements must be >= 1, got {refinements}")
+    incremental.ba_global_max_refinements = refinements
     incremental.mapper.ba_global_ignore_redundant_points3D = bool(pcfg["global_ba_skip_redundant_points"])
     incremental.use_prior_position = bool(pcfg["use_prior_position"])
     incremental.use_robust_loss_on_prior_position = bool(pcfg["use_prior_position"]) and bool(

@@ -644,6 +644,11 @@ def test_global_ba_schedule_reaches_the_mapper():
     assert skip.incremental.mapper.ba_global_ignore_redundant_points3D
     with pytest.raises(ValueError, match="global_ba_growth_ratio must be > 1"):
         sfm_options(reconstruct_cfg(**{"sfm.mapping.global_ba_growth_ratio": 1.0}).sfm)
+    rounds = "sfm.mapping.global_ba_max_refinements"
+    assert options.ba_global_max_refinements == reconstruct_cfg().sfm.mapping.global_ba_max_refinements
+    assert sfm_options(reconstruct_cfg(**{rounds: 2}).sfm).incremental.ba_global_max_refinements == 2
+    with pytest.raises(ValueError, match="global_ba_max_refinements must be >= 1"):
+        sfm_options(reconstruct_cfg(**{rounds: 0}).sfm)
 
 
 def test_pose_prior_pairs_skip_views_back_to_back():
@@ -753,6 +758,13 @@ def test_reconstruct_flight_reuses_unchanged_outputs(box_flight, box_reconstruct
     assert flight_content_key(box_flight, flight, reconstruct_cfg(**{budget: 0.06}), 0) == key
     assert flight_content_key(box_flight, flight, reconstruct_cfg(**{budget: None}), 0) == key
     assert flight_content_key(box_flight, flight, reconstruct_cfg(**{budget: 0.04}), 0) != key
+    # A mapper setting added after the records: at COLMAP's own value it leaves the key alone.
+    rounds = "sfm.mapping.global_ba_max_refinements"
+    keys = {n: flight_content_key(box_flight, flight, reconstruct_cfg(**{rounds: n}), 0) for n in (1, 2, 5)}
+    assert len(set(keys.values())) == 3
+    without = reconstruct_cfg()
+    without.sfm.mapping.pop("global_ba_max_refinements")
+    assert flight_content_key(box_flight, flight, without, 0) == keys[5]
 
 
 def test_a_run_killed_after_sfm_resumes_from_its_sparse_model(box_flight, box_reconstruction, tmp_path):
