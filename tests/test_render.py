@@ -436,3 +436,16 @@ def test_cli_refuses_a_nan_viewpoint(tmp_path):
     assert proc.returncode == 2
     assert str(csv_path) in proc.stderr and "viewpoint 1 has a non-finite value" in proc.stderr
     assert not out.exists()
+
+
+def test_a_flight_rendered_twice_has_the_same_image_bytes(tmp_path, lit_scene):
+    """The reconstruction's cache and a killed cell's resume key on the image bytes."""
+    from render import render_flight
+
+    viewpoints = np.array([[0.0, -20.0, 12.0, 90.0, -30.0], [15.0, 0.0, 25.0, 180.0, -60.0]])
+    for name in ("first", "second"):
+        render_flight(lit_scene, viewpoints, Intrinsics(96, 72, 60.0), tmp_path / name, render_cfg())
+    first = sorted(p.name for p in (tmp_path / "first").glob("*.png"))
+    assert len(first) == 2
+    for image in first:
+        assert (tmp_path / "first" / image).read_bytes() == (tmp_path / "second" / image).read_bytes()
