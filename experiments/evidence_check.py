@@ -4,7 +4,7 @@
 
 For each run directory (any planner: only its scene and its exploration cache entry are read), the
 proxy of that entry is sampled as the planner samples it (``n_points``, the run's seed), each sample
-gets the evidence weight of ``conf/planner/ours_plus.yaml`` from the exploration's fused cloud, and
+gets the evidence weight of ``conf/planner/ours_plus.yaml`` from the exploration's fused cloud and images, and
 its true error is its distance to the ground-truth surface (which the planner never sees). Prints
 and writes, per scene, the Spearman rank correlation between weight and true error, per signal
 too, and the median true error of sure and unsure samples.
@@ -29,7 +29,7 @@ if str(ROOT) not in sys.path:  # run as a script from anywhere
 from experiments.runs import RunDirectoryError, load_runs, read_run_config, scene_name  # noqa: E402
 from scene.io import write_text_atomic  # noqa: E402
 
-SIGNALS = ("gap", "support", "normal")
+SIGNALS = ("gap", "support", "normal", "photo")
 
 
 def ours_plus_evidence_settings():
@@ -56,7 +56,8 @@ def check_entry(entry: Path, ground_truth, n_points: int, seed: int) -> dict:
     """Weights, signals and true errors of one exploration entry's proxy samples; the correlations."""
     from experiments.exploration import load_proxy
     from planner.evidence import evidence_signals, sample_weights
-    from planner.sampling import PROXY_CLOUD_KEY, sample_surface
+    from planner.photo_evidence import PhotoViews, photo_consistency
+    from planner.sampling import PROXY_CLOUD_KEY, PROXY_VIEWS_KEY, sample_surface
 
     settings = ours_plus_evidence_settings()
     proxy = load_proxy(entry)
@@ -64,7 +65,12 @@ def check_entry(entry: Path, ground_truth, n_points: int, seed: int) -> dict:
     if not cloud or len(cloud["points"]) == 0:
         raise RunDirectoryError(f"{entry}: the exploration entry holds no fused cloud (recon/dense.ply)")
     points, normals = sample_surface(proxy, n_points, seed)
-    signals = evidence_signals(points, normals, cloud["points"], cloud["normals"], settings)
+    where = proxy.metadata.get(PROXY_VIEWS_KEY)
+    photo = None
+    if settings.photo is not None and where:
+        views = PhotoViews.from_reconstruction(where["recon_dir"], where["image_dir"])
+        photo = photo_consistency(points, normals, proxy, views, settings.photo)
+    signals = evidence_signals(points, normals, cloud["points"], cloud["normals"], settings, photo)
     weights = sample_weights(signals["uncertainty"], settings)
     error = true_error_m(ground_truth, points)
     unsure = signals["uncertainty"] > 0.5
@@ -72,7 +78,13 @@ def check_entry(entry: Path, ground_truth, n_points: int, seed: int) -> dict:
         "n_samples": len(points),
         "share_unsure": float(unsure.mean()),
         "spearman_weight": float(spearmanr(weights, error).statistic),
-        **{f"spearman_{s}": float(spearmanr(signals[s], error).statistic) for s in SIGNALS},
+        **{f"spearman_{s}": float(spearmanr(signals[s], error).statistic) for s in SIGNALS if s in signals},
+        # The photo signal's NCC where it scored (a plain patch or a sample one view sees: no score).
+        "share_photo_scored": float(np.mean(np.isfinite(photo["ncc"]))) if photo else float("nan"),
+        "spearman_photo_ncc_scored": _scored_spearman(photo, error),
+        "spearman_weight_cloud_only": float(
+            spearmanr(np.maximum.reduce([signals[s] for s in SIGNALS[:3]]), error).statistic
+        ),
         "median_error_sure_m": float(np.median(error[~unsure])) if (~unsure).any() else float("nan"),
         "median_error_unsure_m": float(np.median(error[unsure])) if unsure.any() else float("nan"),
         "share_error_over_10cm": float(np.mean(error > 0.1)),
@@ -80,18 +92,31 @@ def check_entry(entry: Path, ground_truth, n_points: int, seed: int) -> dict:
     return row
 
 
+def _scored_spearman(photo, error: np.ndarray) -> float:
+    """Spearman of -NCC against the true error over the samples the photo signal scored."""
+    if not photo:
+        return float("nan")
+    scored = np.isfinite(photo["ncc"])
+    return (
+        float(spearmanr(-photo["ncc"][scored], error[scored]).statistic) if scored.sum() > 2 else float("nan")
+    )
+
+
 def to_markdown(frame: pd.DataFrame) -> str:
     """One row per scene: samples, unsure share, rank correlations, median true errors."""
     lines = [
-        "| Scene | Samples | Unsure (u > 0.5) | Spearman weight | gap | support | normal "
-        "| Median true error sure / unsure (cm) | True error > 10 cm |",
-        "| :-- | --: | --: | --: | --: | --: | --: | --: | --: |",
+        "| Scene | Samples | Unsure (u > 0.5) | Spearman weight | weight without photo | gap | support "
+        "| normal | photo | photo NCC (scored share) | Median true error sure / unsure (cm) "
+        "| True error > 10 cm |",
+        "| :-- | --: | --: | --: | --: | --: | --: | --: | --: | --: | --: | --: |",
     ]
     for r in frame.itertuples():
+        photo = getattr(r, "spearman_photo", float("nan"))
         lines.append(
             f"| {scene_name(r.scene)} | {r.n_samples} | {100 * r.share_unsure:.1f} % "
-            f"| {r.spearman_weight:.3f} "
-            f"| {r.spearman_gap:.3f} | {r.spearman_support:.3f} | {r.spearman_normal:.3f} "
+            f"| {r.spearman_weight:.3f} | {r.spearman_weight_cloud_only:.3f} "
+            f"| {r.spearman_gap:.3f} | {r.spearman_support:.3f} | {r.spearman_normal:.3f} | {photo:.3f} "
+            f"| {r.spearman_photo_ncc_scored:.3f} ({100 * r.share_photo_scored:.0f} %) "
             f"| {100 * r.median_error_sure_m:.1f} / {100 * r.median_error_unsure_m:.1f} "
             f"| {100 * r.share_error_over_10cm:.1f} % |"
         )

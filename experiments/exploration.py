@@ -15,7 +15,7 @@ import trimesh
 from omegaconf import DictConfig, OmegaConf
 
 from experiments.cache import cache_key, cached_entry
-from planner.sampling import PROXY_CLOUD_KEY
+from planner.sampling import PROXY_CLOUD_KEY, PROXY_VIEWS_KEY
 from reconstruct.proxy import oriented_cloud
 from scene.base import Box, Scene
 from scene.camera import Intrinsics
@@ -50,7 +50,8 @@ def exploration_cache_key(cfg: DictConfig, scene: Scene) -> str:
 def load_proxy(entry: Path) -> trimesh.Trimesh:
     """The proxy mesh of an exploration cache entry, carrying the exploratory flight's oriented cloud
     (``proxy.metadata[PROXY_CLOUD_KEY]``, for planners that read the coarse model's points: Yan's
-    confidence term) when the entry holds its ``recon/dense.ply``."""
+    confidence term) when the entry holds its ``recon/dense.ply``, and where its registered views
+    and images are (``PROXY_VIEWS_KEY``, for ours_plus' photo-consistency)."""
     entry = Path(entry)
     if not (entry / PROXY_FILE).is_file():
         raise FileNotFoundError(f"{entry / PROXY_FILE}: no proxy (not an exploration cache entry)")
@@ -61,6 +62,8 @@ def load_proxy(entry: Path) -> trimesh.Trimesh:
         proxy.metadata[PROXY_CLOUD_KEY] = oriented_cloud(
             dense_ply, box.expanded(1.0, 1.0, 1.0), CLOUD_VOXEL_M
         )
+    if (entry / "recon" / "sparse").is_dir() and (entry / "images").is_dir():
+        proxy.metadata[PROXY_VIEWS_KEY] = {"recon_dir": entry / "recon", "image_dir": entry / "images"}
     return proxy
 
 

@@ -11,8 +11,14 @@ the cloud (``proxy.metadata[PROXY_CLOUD_KEY]``: points and unit normals, no grou
 - ``normal``: angle between the proxy's normal and the mean normal of the cloud points within
   ``radius_m``. At the rim of a bridged recess the cloud turns into the recess; the proxy does not.
 
+and, when the exploration's registered views come with the proxy and ``photo`` is set, one from its
+images (``planner.photo_evidence``):
+
+- ``photo``: how little the sample's patch of proxy looks the same in the views that see it (mean
+  NCC). A surface the cloud itself places centimetres off looks sure to the three above, not here.
+
 Each signal maps linearly onto [0, 1] between its two settings; a sample's uncertainty is the
-largest of the three and its weight ``1 + weight * uncertainty`` (``weight`` 0: all ones).
+largest of them and its weight ``1 + weight * uncertainty`` (``weight`` 0: all ones).
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from planner.photo_evidence import PhotoSettings
 from scene.plan import PlanningError
 
 
@@ -41,10 +48,13 @@ class EvidenceSettings:
     support_hi: float  # ... and at which it is 0
     normal_lo_deg: float
     normal_hi_deg: float
+    photo: PhotoSettings | None = None  # None: no image evidence
 
     @classmethod
     def from_config(cls, node: Mapping) -> EvidenceSettings:
-        s = cls(**{k: float(node[k]) for k in cls.__dataclass_fields__})
+        photo = node.get("photo")
+        photo = PhotoSettings.from_config(photo) if photo and photo.get("enabled", True) else None
+        s = cls(**{k: float(node[k]) for k in cls.__dataclass_fields__ if k != "photo"}, photo=photo)
         if s.weight < 0:
             raise PlanningError(f"planner ours_plus: evidence.weight must be >= 0, got {s.weight}")
         if s.radius_m <= 0:
@@ -72,17 +82,34 @@ def evidence_signals(
     cloud_points: np.ndarray,
     cloud_normals: np.ndarray,
     s: EvidenceSettings,
+    photo: Mapping[str, np.ndarray] | None = None,
 ) -> dict[str, np.ndarray]:
-    """The three signals (each (P,), in [0, 1]) and their raw values for the samples.
+    """The cloud's three signals (each (P,), in [0, 1]) and their raw values for the samples.
 
     Args:
         points, normals: (P, 3) proxy samples and unit normals (world metres).
         cloud_points, cloud_normals: (N, 3) the exploration's fused cloud and its unit normals.
+        photo: ``planner.photo_evidence.photo_consistency``'s result for the same samples, if any.
 
     Returns:
         ``gap``, ``support``, ``normal`` (signals), ``gap_m``, ``support_ratio``, ``normal_deg``
-        (raw values) and ``uncertainty`` (the largest signal).
+        (raw values), with ``photo`` and ``photo_ncc`` when ``photo`` is given, and ``uncertainty``
+        (the largest signal).
     """
+    cloud = _cloud_signals(points, normals, cloud_points, cloud_normals, s)
+    if photo is not None:
+        cloud |= {"photo": np.asarray(photo["signal"], float), "photo_ncc": np.asarray(photo["ncc"], float)}
+        cloud["uncertainty"] = np.maximum(cloud["uncertainty"], cloud["photo"])
+    return cloud
+
+
+def _cloud_signals(
+    points: np.ndarray,
+    normals: np.ndarray,
+    cloud_points: np.ndarray,
+    cloud_normals: np.ndarray,
+    s: EvidenceSettings,
+) -> dict[str, np.ndarray]:
     points = np.asarray(points, float)
     normals = np.asarray(normals, float)
     n = len(points)

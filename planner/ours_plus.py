@@ -24,7 +24,8 @@ from planner.base import plain_params
 from planner.evidence import EvidenceSettings, evidence_signals, sample_weights
 from planner.flight_time_term import FlightTimeTerm
 from planner.ours import PlanExtensions, plan_with, resolve_params
-from planner.sampling import PROXY_CLOUD_KEY
+from planner.photo_evidence import PhotoViews, photo_consistency
+from planner.sampling import PROXY_CLOUD_KEY, PROXY_VIEWS_KEY
 from scene.camera import Intrinsics
 from scene.plan import Plan, PlanningError
 
@@ -32,26 +33,35 @@ EXTRA_SECTIONS = ("evidence", "flight_time", "drone")
 
 
 def evidence_weigher(proxy: trimesh.Trimesh, settings: EvidenceSettings):
-    """(points, normals) -> (weights, record) from the cloud the proxy carries; all ones (and a
-    record that says so) when the proxy has none (a degraded ground truth) or the weight is 0."""
+    """(points, normals) -> (weights, record) from the cloud the proxy carries (and the
+    exploration's images, with ``evidence.photo``); all ones (and a record that says so) when the
+    proxy has no cloud (a degraded ground truth) or the weight is 0."""
     cloud = proxy.metadata.get(PROXY_CLOUD_KEY)
+    where = proxy.metadata.get(PROXY_VIEWS_KEY)
 
     def weigh(points: np.ndarray, normals: np.ndarray):
         if settings.weight == 0.0:
             return None, {"source": "off"}
         if not cloud or len(cloud["points"]) == 0:
             return None, {"source": "none (the proxy carries no exploration cloud)"}
-        signals = evidence_signals(points, normals, cloud["points"], cloud["normals"], settings)
+        photo = None
+        if settings.photo is not None and where:
+            views = PhotoViews.from_reconstruction(where["recon_dir"], where["image_dir"])
+            photo = photo_consistency(points, normals, proxy, views, settings.photo)
+        signals = evidence_signals(points, normals, cloud["points"], cloud["normals"], settings, photo)
         weights = sample_weights(signals["uncertainty"], settings)
+        kinds = ("gap", "support", "normal") + (("photo",) if photo is not None else ())
         record = {
-            "source": "exploration cloud",
+            "source": "exploration cloud" + (" and images" if photo is not None else ""),
             "n_cloud_points": len(cloud["points"]),
             "weight_mean": float(weights.mean()),
             "weight_max": float(weights.max()),
             "share_unsure": float(np.mean(signals["uncertainty"] > 0.5)),
-            **{f"share_{k}_signal": float(np.mean(signals[k] > 0.5)) for k in ("gap", "support", "normal")},
+            **{f"share_{k}_signal": float(np.mean(signals[k] > 0.5)) for k in kinds},
             "weights": np.round(weights, 4).tolist(),
         }
+        if photo is not None:
+            record["share_photo_scored"] = float(np.mean(np.isfinite(photo["ncc"])))
         return weights, record
 
     return weigh
