@@ -110,3 +110,15 @@ def test_bad_photo_settings_are_refused(key, value, message):
     node = {**SETTINGS.__dict__, key: value}
     with pytest.raises(PlanningError, match=message):
         PhotoSettings.from_config(node)
+
+
+def test_an_exploration_entry_hands_its_views_to_the_planner(tmp_path):
+    from experiments.exploration import load_proxy
+    from planner.sampling import PROXY_VIEWS_KEY
+
+    _plane(0.0).export(tmp_path / "proxy.ply")
+    assert PROXY_VIEWS_KEY not in load_proxy(tmp_path).metadata  # no registered views yet
+    (tmp_path / "recon" / "sparse").mkdir(parents=True)
+    (tmp_path / "images").mkdir()
+    views = load_proxy(tmp_path).metadata[PROXY_VIEWS_KEY]
+    assert views == {"recon_dir": tmp_path / "recon", "image_dir": tmp_path / "images"}
