@@ -173,7 +173,8 @@ def photo_consistency(
         directions = to_cam[p_idx, v_idx] / dist[p_idx, v_idx, None]
         rays = np.hstack([origins, directions]).astype(np.float32)
         hit = raycasting_scene(proxy).cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-        seen[p_idx[hit < dist[p_idx, v_idx] - 0.1], v_idx[hit < dist[p_idx, v_idx] - 0.1]] = False
+        blocked = hit < dist[p_idx, v_idx] - 0.1
+        seen[p_idx[blocked], v_idx[blocked]] = False
     n_seen = seen.sum(axis=1)
 
     # The most frontal views of each sample, the first being the reference.
@@ -199,7 +200,10 @@ def photo_consistency(
             rows = np.nonzero((ids == view) & chosen_seen[:, j])[0]
             pix_v, _ = _project(views, grid[rows], np.full(grid[rows].shape[:2], view))
             patches[rows, j] = map_coordinates(
-                views.images[view].astype(np.float32), [pix_v[..., 1].ravel(), pix_v[..., 0].ravel()], order=1
+                views.images[view],
+                [pix_v[..., 1].ravel(), pix_v[..., 0].ravel()],
+                order=1,
+                output=np.float64,
             ).reshape(len(rows), -1)
     centred = patches - patches.mean(axis=2, keepdims=True)
     norm = np.linalg.norm(centred, axis=2)
