@@ -55,22 +55,15 @@ def true_error_m(mesh, points: np.ndarray) -> np.ndarray:
 def check_entry(entry: Path, ground_truth, n_points: int, seed: int) -> dict:
     """Weights, signals and true errors of one exploration entry's proxy samples; the correlations."""
     from experiments.exploration import load_proxy
-    from planner.evidence import evidence_signals, sample_weights
-    from planner.photo_evidence import PhotoViews, photo_consistency
-    from planner.sampling import PROXY_CLOUD_KEY, PROXY_VIEWS_KEY, sample_surface
+    from planner.evidence import proxy_evidence, sample_weights
+    from planner.sampling import sample_surface
 
     settings = ours_plus_evidence_settings()
     proxy = load_proxy(entry)
-    cloud = proxy.metadata.get(PROXY_CLOUD_KEY)
-    if not cloud or len(cloud["points"]) == 0:
-        raise RunDirectoryError(f"{entry}: the exploration entry holds no fused cloud (recon/dense.ply)")
     points, normals = sample_surface(proxy, n_points, seed)
-    where = proxy.metadata.get(PROXY_VIEWS_KEY)
-    photo = None
-    if settings.photo is not None and where:
-        views = PhotoViews.from_reconstruction(where["recon_dir"], where["image_dir"])
-        photo = photo_consistency(points, normals, proxy, views, settings.photo)
-    signals = evidence_signals(points, normals, cloud["points"], cloud["normals"], settings, photo)
+    signals = proxy_evidence(proxy, points, normals, settings)
+    if signals is None:
+        raise RunDirectoryError(f"{entry}: the exploration entry holds no fused cloud (recon/dense.ply)")
     weights = sample_weights(signals["uncertainty"], settings)
     error = true_error_m(ground_truth, points)
     unsure = signals["uncertainty"] > 0.5
@@ -80,8 +73,10 @@ def check_entry(entry: Path, ground_truth, n_points: int, seed: int) -> dict:
         "spearman_weight": float(spearmanr(weights, error).statistic),
         **{f"spearman_{s}": float(spearmanr(signals[s], error).statistic) for s in SIGNALS if s in signals},
         # The photo signal's NCC where it scored (a plain patch or a sample one view sees: no score).
-        "share_photo_scored": float(np.mean(np.isfinite(photo["ncc"]))) if photo else float("nan"),
-        "spearman_photo_ncc_scored": _scored_spearman(photo, error),
+        "share_photo_scored": (
+            float(np.mean(np.isfinite(signals["photo_ncc"]))) if "photo_ncc" in signals else float("nan")
+        ),
+        "spearman_photo_ncc_scored": _scored_spearman(signals.get("photo_ncc"), error),
         "spearman_weight_cloud_only": float(
             spearmanr(np.maximum.reduce([signals[s] for s in SIGNALS[:3]]), error).statistic
         ),
@@ -92,14 +87,12 @@ def check_entry(entry: Path, ground_truth, n_points: int, seed: int) -> dict:
     return row
 
 
-def _scored_spearman(photo, error: np.ndarray) -> float:
+def _scored_spearman(ncc: np.ndarray | None, error: np.ndarray) -> float:
     """Spearman of -NCC against the true error over the samples the photo signal scored."""
-    if not photo:
+    if ncc is None:
         return float("nan")
-    scored = np.isfinite(photo["ncc"])
-    return (
-        float(spearmanr(-photo["ncc"][scored], error[scored]).statistic) if scored.sum() > 2 else float("nan")
-    )
+    scored = np.isfinite(ncc)
+    return float(spearmanr(-ncc[scored], error[scored]).statistic) if scored.sum() > 2 else float("nan")
 
 
 def to_markdown(frame: pd.DataFrame) -> str:

@@ -27,9 +27,11 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
+import trimesh
 from scipy.spatial import cKDTree
 
-from planner.photo_evidence import PhotoSettings
+from planner.photo_evidence import PhotoSettings, PhotoViews, photo_consistency
+from planner.sampling import PROXY_CLOUD_KEY, PROXY_VIEWS_KEY
 from scene.plan import PlanningError
 
 
@@ -101,6 +103,26 @@ def evidence_signals(
         cloud |= {"photo": np.asarray(photo["signal"], float), "photo_ncc": np.asarray(photo["ncc"], float)}
         cloud["uncertainty"] = np.maximum(cloud["uncertainty"], cloud["photo"])
     return cloud
+
+
+def proxy_evidence(
+    proxy: trimesh.Trimesh, points: np.ndarray, normals: np.ndarray, s: EvidenceSettings
+) -> dict[str, np.ndarray] | None:
+    """``evidence_signals`` for samples of ``proxy`` from what it carries of its exploration: the
+    fused cloud (``PROXY_CLOUD_KEY``) and, with ``s.photo``, the registered views (``PROXY_VIEWS_KEY``).
+
+    Returns:
+        the signals, or None when the proxy carries no cloud (a degraded ground truth).
+    """
+    cloud = proxy.metadata.get(PROXY_CLOUD_KEY)
+    if not cloud or len(cloud["points"]) == 0:
+        return None
+    where = proxy.metadata.get(PROXY_VIEWS_KEY)
+    photo = None
+    if s.photo is not None and where:
+        views = PhotoViews.from_reconstruction(where["recon_dir"], where["image_dir"])
+        photo = photo_consistency(points, normals, proxy, views, s.photo)
+    return evidence_signals(points, normals, cloud["points"], cloud["normals"], s, photo)
 
 
 def _cloud_signals(

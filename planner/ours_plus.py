@@ -21,11 +21,10 @@ from threadpoolctl import threadpool_limits
 
 from mission.flight_time import DroneSettings
 from planner.base import plain_params
-from planner.evidence import EvidenceSettings, evidence_signals, sample_weights
+from planner.evidence import EvidenceSettings, proxy_evidence, sample_weights
 from planner.flight_time_term import FlightTimeTerm
 from planner.ours import PlanExtensions, plan_with, resolve_params
-from planner.photo_evidence import PhotoViews, photo_consistency
-from planner.sampling import PROXY_CLOUD_KEY, PROXY_VIEWS_KEY
+from planner.sampling import PROXY_CLOUD_KEY
 from scene.camera import Intrinsics
 from scene.plan import Plan, PlanningError
 
@@ -36,32 +35,27 @@ def evidence_weigher(proxy: trimesh.Trimesh, settings: EvidenceSettings):
     """(points, normals) -> (weights, record) from the cloud the proxy carries (and the
     exploration's images, with ``evidence.photo``); all ones (and a record that says so) when the
     proxy has no cloud (a degraded ground truth) or the weight is 0."""
-    cloud = proxy.metadata.get(PROXY_CLOUD_KEY)
-    where = proxy.metadata.get(PROXY_VIEWS_KEY)
 
     def weigh(points: np.ndarray, normals: np.ndarray):
         if settings.weight == 0.0:
             return None, {"source": "off"}
-        if not cloud or len(cloud["points"]) == 0:
+        signals = proxy_evidence(proxy, points, normals, settings)
+        if signals is None:
             return None, {"source": "none (the proxy carries no exploration cloud)"}
-        photo = None
-        if settings.photo is not None and where:
-            views = PhotoViews.from_reconstruction(where["recon_dir"], where["image_dir"])
-            photo = photo_consistency(points, normals, proxy, views, settings.photo)
-        signals = evidence_signals(points, normals, cloud["points"], cloud["normals"], settings, photo)
         weights = sample_weights(signals["uncertainty"], settings)
-        kinds = ("gap", "support", "normal") + (("photo",) if photo is not None else ())
+        with_photo = "photo" in signals
+        kinds = ("gap", "support", "normal") + (("photo",) if with_photo else ())
         record = {
-            "source": "exploration cloud" + (" and images" if photo is not None else ""),
-            "n_cloud_points": len(cloud["points"]),
+            "source": "exploration cloud" + (" and images" if with_photo else ""),
+            "n_cloud_points": len(proxy.metadata[PROXY_CLOUD_KEY]["points"]),
             "weight_mean": float(weights.mean()),
             "weight_max": float(weights.max()),
             "share_unsure": float(np.mean(signals["uncertainty"] > 0.5)),
             **{f"share_{k}_signal": float(np.mean(signals[k] > 0.5)) for k in kinds},
             "weights": np.round(weights, 4).tolist(),
         }
-        if photo is not None:
-            record["share_photo_scored"] = float(np.mean(np.isfinite(photo["ncc"])))
+        if with_photo:
+            record["share_photo_scored"] = float(np.mean(np.isfinite(signals["photo_ncc"])))
         return weights, record
 
     return weigh
