@@ -11,7 +11,8 @@ does, and reports the registered images and camera errors. Run it on an idle mac
 the table it prints.
 
 ``--database RUN/recon/database.db`` maps a copy of a cell's database instead (its features,
-pairs and GNSS priors as they are): only the mapping settings vary, extraction and matching show 0.
+pairs and GNSS priors as they are): only the mapping settings and the prior check of the pairs
+(``matching.prior_check``, timed as matching) vary; extraction shows 0.
 
     python -m experiments.bench_sfm RUN/images --database RUN/recon/database.db \\
         --variant default= --variant skip=mapping.global_ba_skip_redundant_points=true
@@ -35,11 +36,12 @@ from experiments.bench_dense import parse_variant  # noqa: E402
 STAGES = ("extraction", "matching", "mapping")
 
 
-def map_database(database: Path, flight, out_dir: Path, sfm_cfg, seed: int):
-    """Map a copy of ``database`` (features, pairs and priors already there) with ``sfm_cfg``."""
+def map_database(database: Path, flight, gnss, out_dir: Path, sfm_cfg, seed: int):
+    """Map a copy of ``database`` (features, pairs and priors already there) with ``sfm_cfg``, after
+    its prior check of the pairs (``matching.prior_check``) when that is on."""
     import pycolmap
 
-    from reconstruct.sfm import SfmResult, map_reconstruction, sfm_options
+    from reconstruct.sfm import SfmResult, check_pairs, map_reconstruction, sfm_options
     from reconstruct.timing import stage_time
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -47,12 +49,14 @@ def map_database(database: Path, flight, out_dir: Path, sfm_cfg, seed: int):
     shutil.copyfile(database, copy)
     options = sfm_options(sfm_cfg, seed)
     pycolmap.set_random_seed(int(seed))
+    with stage_time() as check:
+        n_rejected = check_pairs(copy, flight, gnss, options, seed)
     with stage_time() as clock:
         models = map_reconstruction(copy, flight.image_dir, options)
     n_pairs = pycolmap.Database.open(copy).num_matched_image_pairs()
-    times = {"extraction": 0.0, "matching": 0.0, "mapping": clock.wall_s}
-    cpu = {"extraction": 0.0, "matching": 0.0, "mapping": clock.cpu_s}
-    return SfmResult(models, "database", times, cpu, n_pairs)
+    times = {"extraction": 0.0, "matching": check.wall_s, "mapping": clock.wall_s}
+    cpu = {"extraction": 0.0, "matching": check.cpu_s, "mapping": clock.cpu_s}
+    return SfmResult(models, "database", times, cpu, n_pairs, n_rejected)
 
 
 def run_variant(
@@ -77,10 +81,14 @@ def run_variant(
     if database is None:
         sfm = run_sfm(flight, out_dir, gnss, sigma, sfm_cfg, seed)
     else:
-        sfm = map_database(database, flight, out_dir, sfm_cfg, seed)
+        sfm = map_database(database, flight, gnss, out_dir, sfm_cfg, seed)
     model, merged = georeference_models(sfm.models, flight.names, gnss, sigma, cfg.align, seed)
     record = {f"{s}_time_s": sfm.times_s[s] for s in STAGES} | {f"{s}_cpu_s": sfm.cpu_s[s] for s in STAGES}
-    record |= {"n_image_pairs": sfm.n_image_pairs, "model_sizes": merged["model_sizes"]}
+    record |= {
+        "n_image_pairs": sfm.n_image_pairs,
+        "n_pairs_rejected": sfm.n_pairs_rejected,
+        "model_sizes": merged["model_sizes"],
+    }
     return record | pose_errors(model, flight)
 
 
@@ -89,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("image_dir", type=Path, help="a rendered flight (images + cameras.json)")
     parser.add_argument("--variant", action="append", required=True, help="NAME=KEY=VALUE,... (repeatable)")
     parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "bench_sfm")
-    parser.add_argument("--database", type=Path, help="map a copy of this database (mapping variants only)")
+    parser.add_argument("--database", type=Path, help="map a copy of this database (mapping and prior-check variants only)")
     args = parser.parse_args(argv)
     try:
         variants = [parse_variant(v) for v in args.variant]
@@ -103,7 +111,8 @@ def main(argv: list[str] | None = None) -> int:
     header = (
         f"{'variant':>12} "
         + " ".join(f"{s[:7] + ' s':>10} {'cpu':>6}" for s in STAGES)
-        + f" {'total s':>8} {'cpu':>7} {'pairs':>6} {'models':>9} {'reg':>5} {'pos med m':>9} {'p90 m':>6}"
+        + f" {'total s':>8} {'cpu':>7} {'pairs':>6} {'dropped':>7} {'models':>9}"
+        + f" {'reg':>5} {'pos med m':>9} {'p90 m':>6} {'rot max':>7}"
     )
     print(f"{args.image_dir}, {os.cpu_count()} cores\n{header}", flush=True)
     rows = {}
@@ -119,9 +128,10 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"{name:>12} "
             + " ".join(f"{r[f'{s}_time_s']:>10.1f} {r[f'{s}_cpu_s']:>6.0f}" for s in STAGES)
-            + f" {wall:>8.1f} {cpu:>7.0f} {r['n_image_pairs']:>6d} {r['model_sizes']:>9}"
-            + f" {r['n_registered']:>5d}"
-            + f" {r['position_error_median_m']:>9.3f} {r['position_error_p90_m']:>6.3f}",
+            + f" {wall:>8.1f} {cpu:>7.0f} {r['n_image_pairs']:>6d} {r['n_pairs_rejected']:>7d}"
+            + f" {r['model_sizes']:>9} {r['n_registered']:>5d}"
+            + f" {r['position_error_median_m']:>9.3f} {r['position_error_p90_m']:>6.3f}"
+            + f" {r['rotation_error_max_deg']:>7.1f}",
             flush=True,
         )
     args.out.mkdir(parents=True, exist_ok=True)

@@ -94,6 +94,10 @@ def _in_effect(section: str, value, fusion_bytes: float = 0.0):
         return {**value, "fusion": fusion}
     if section != "sfm" or not isinstance(value, dict) or not isinstance(value.get("mapping"), dict):
         return value
+    matching = value.get("matching")
+    if isinstance(matching, dict) and not (matching.get("prior_check") or {}).get("enabled", False):
+        # Added after records: off, it matches as before it existed.
+        value = {**value, "matching": {k: v for k, v in matching.items() if k != "prior_check"}}
     mapping = value["mapping"]
     unused = GLOBAL_ONLY_MAPPING_KEYS if mapping.get("method") != "global" else ()
     # A setting added later at COLMAP's own value maps as before it existed: keys stay.
@@ -271,6 +275,7 @@ def _sparse_stage(
         "align_cpu_s": sum(sfm.cpu_s.values()),
         "matching_method": sfm.matching_method,
         "n_image_pairs": sfm.n_image_pairs,
+        "n_pairs_rejected_by_priors": sfm.n_pairs_rejected,
         "database": str(out_dir / "database.db"),
     }
     min_fraction = float(cfg["min_registered_fraction"])

@@ -18,6 +18,7 @@ import pycolmap
 
 from reconstruct.errors import ReconstructionError
 from reconstruct.flight import Flight
+from reconstruct.pair_check import PairCheckSettings, logged_attitudes, reject_pairs_against_priors
 from reconstruct.timing import stage_time
 from scene.io import write_text_atomic
 
@@ -52,6 +53,7 @@ class SfmOptions:
     pose_prior_max_neighbors: int
     pose_prior_max_distance_m: float
     pose_prior_max_axis_angle_deg: float
+    prior_check: PairCheckSettings
 
 
 @dataclass
@@ -64,6 +66,7 @@ class SfmResult:
     times_s: dict = field(default_factory=dict)
     cpu_s: dict = field(default_factory=dict)
     n_image_pairs: int = 0
+    n_pairs_rejected: int = 0  # verified pairs the prior check dropped (``reconstruct.pair_check``)
 
     @property
     def reconstruction(self) -> pycolmap.Reconstruction:
@@ -112,6 +115,7 @@ def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> Sfm
     matching.guided_matching = bool(mcfg["guided_matching"])
     matching.sift.max_ratio = float(mcfg["max_ratio"])
 
+    prior_check = PairCheckSettings.from_config(mcfg.get("prior_check"))
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = int(seed)
 
@@ -189,6 +193,7 @@ def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> Sfm
         pose_prior_max_neighbors=int(mcfg["pose_prior_max_neighbors"]),
         pose_prior_max_distance_m=float(mcfg["pose_prior_max_distance_m"]),
         pose_prior_max_axis_angle_deg=float(mcfg["pose_prior_max_axis_angle_deg"]),
+        prior_check=prior_check,
     )
 
 
@@ -328,6 +333,21 @@ def match_features(
     return method, n_pairs
 
 
+def check_pairs(
+    database_path: Path, flight: Flight, gnss_positions: np.ndarray, options: SfmOptions, seed: int
+) -> int:
+    """With ``matching.prior_check`` on, drop the verified pairs that contradict the GNSS positions
+    ((N, 3) metres, flight order) and the logged attitudes (``reconstruct.pair_check``); return how
+    many were dropped (0 when off)."""
+    if not options.prior_check.enabled:
+        return 0
+    attitudes = logged_attitudes(flight.rotations, options.prior_check.attitude_sigma_deg, seed)
+    checked = reject_pairs_against_priors(
+        database_path, flight.names, attitudes, gnss_positions, options.prior_check
+    )
+    return checked["n_pairs_rejected"]
+
+
 def map_reconstruction(
     database_path: Path, image_dir: Path, options: SfmOptions
 ) -> list[pycolmap.Reconstruction]:
@@ -443,6 +463,7 @@ def run_sfm(
 
     with stage_time() as clock:
         method, n_pairs = match_features(database_path, flight, gnss_positions, options)
+        n_rejected = check_pairs(database_path, flight, gnss_positions, options, seed)
     times["matching"], cpu["matching"] = clock.wall_s, clock.cpu_s
     log.info("matching: %d pairs in %.1f s (%.1f s CPU)", n_pairs, times["matching"], cpu["matching"])
 
@@ -458,4 +479,4 @@ def run_sfm(
         len(flight),
     )
     shutil.rmtree(work_dir / "mapper", ignore_errors=True)
-    return SfmResult(models, method, times, cpu, n_pairs)
+    return SfmResult(models, method, times, cpu, n_pairs, n_rejected)
