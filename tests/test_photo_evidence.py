@@ -122,3 +122,23 @@ def test_an_exploration_entry_hands_its_views_to_the_planner(tmp_path):
     (tmp_path / "images").mkdir()
     views = load_proxy(tmp_path).metadata[PROXY_VIEWS_KEY]
     assert views == {"recon_dir": tmp_path / "recon", "image_dir": tmp_path / "images"}
+
+
+def test_a_proxy_carries_its_own_evidence():
+    """``proxy_evidence`` reads the cloud the proxy carries: a sample 1 m from the cloud's edge is a
+    gap (signal 1), one inside it is sure (0); no views with it, no photo signal; no cloud, None."""
+    from planner.evidence import proxy_evidence
+    from planner.sampling import PROXY_CLOUD_KEY
+
+    settings = EvidenceSettings(1.0, 0.3, 0.15, 0.6, 0.25, 0.75, 25.0, 60.0, SETTINGS)
+    proxy = _plane(0.0)
+    points = np.array([[-1.0, 0.0, 0.0], [3.0, 0.0, 0.0]])
+    normals = np.tile([0.0, 0.0, 1.0], (2, 1))
+    assert proxy_evidence(proxy, points, normals, settings) is None
+    cloud = np.array([[x, y, 0.0] for x in np.linspace(-3, 2, 51) for y in np.linspace(-2, 2, 41)])
+    proxy.metadata[PROXY_CLOUD_KEY] = {"points": cloud, "normals": np.tile([0, 0, 1.0], (len(cloud), 1))}
+    signals = proxy_evidence(proxy, points, normals, settings)
+    assert "photo" not in signals
+    assert signals["gap_m"] == pytest.approx([0.0, 1.0], abs=1e-9)
+    assert signals["gap"] == pytest.approx([0.0, 1.0])
+    assert signals["uncertainty"] == pytest.approx([0.0, 1.0])
