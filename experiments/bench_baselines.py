@@ -59,7 +59,7 @@ def plan_record(plan, seconds: float) -> dict:
     for key in ("objective_initial", "objective_final", "n_initial_views", "n_local", "n_global"):
         if key in info:
             record[key] = info[key]
-    for key in ("fraction_coverable_covered", "n_before_key_images", "rays_cast"):
+    for key in ("fraction_coverable_covered", "n_before_key_images", "rays_cast", "time_reference_s"):
         if key in info:
             record[key] = info[key]
     if "optimisation" in info:

@@ -97,7 +97,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("image_dir", type=Path, help="a rendered flight (images + cameras.json)")
     parser.add_argument("--variant", action="append", required=True, help="NAME=KEY=VALUE,... (repeatable)")
     parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "bench_sfm")
-    parser.add_argument("--database", type=Path, help="map a copy of this database (mapping and prior-check variants only)")
+    parser.add_argument(
+        "--database", type=Path, help="map a copy of this database (mapping and prior-check variants only)"
+    )
     args = parser.parse_args(argv)
     try:
         variants = [parse_variant(v) for v in args.variant]

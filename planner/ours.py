@@ -253,7 +253,8 @@ class PlanExtensions:
 
     Attributes:
         weigh_samples: (points, normals) (P, 3) each -> (weights (P,), record for ``Plan.info``).
-        time_term: take-off point (3,) -> a ``planner.flight_time_term.FlightTimeTerm``.
+        time_term: take-off point (3,) -> a ``planner.flight_time_term.FlightTimeTerm`` without its
+            reference flight, which the views of the first addition set.
         planner: the name the plan carries.
     """
 
@@ -442,6 +443,8 @@ def plan_with(
             True,
             f"detail round {r + 1}",
         )
+        if time_term is not None and time_term.reference_s is None and viewpoints:
+            time_term = time_term.referenced(np.asarray(viewpoints))
         if not viewpoints:
             raise PlanningError(
                 "no valid viewpoint anywhere: every candidate breaks the altitude, clearance or gimbal "
@@ -561,7 +564,8 @@ def plan_with(
     if evidence is not None:
         info["evidence"] = evidence
     if time_term is not None:
-        info["time_weight_per_min"] = time_term.weight_per_min
+        info["time_weight_per_pct"] = time_term.weight_per_pct
+        info["time_reference_s"] = time_term.reference_s
     return Plan(viewpoints=vps, kinds=kinds, planner=ext.planner, info=info)
 
 

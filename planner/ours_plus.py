@@ -5,9 +5,10 @@
    first when views are added and repaired. The planner still sees only the exploration's files
    (its fused cloud travels with the proxy), never the ground truth.
 2. Flight time in the objective (``planner.flight_time_term``): CMA-ES and culling maximise R minus
-   ``flight_time.weight_per_min`` per minute of flight, timed by the missions' model for ``drone``.
+   ``flight_time.weight_per_pct`` per 1 % of the plan's first flight (its views after the first
+   addition), timed by the missions' model for ``drone``.
 
-With ``evidence.weight = 0`` and ``flight_time.weight_per_min = 0`` the plan is ``ours``' plan, view
+With ``evidence.weight = 0`` and ``flight_time.weight_per_pct = 0`` the plan is ``ours``' plan, view
 for view. Parameters: ``conf/planner/ours_plus.yaml`` (ours' settings plus the three sections).
 """
 
@@ -69,20 +70,20 @@ def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: 
         raise PlanningError(f"planner ours_plus: missing setting(s) {missing} (conf/planner/ours_plus.yaml)")
     evidence = EvidenceSettings.from_config(raw.pop("evidence"))
     time_cfg = raw.pop("flight_time")
-    weight_per_min = float(time_cfg["weight_per_min"])
-    if weight_per_min < 0:
+    weight_per_pct = float(time_cfg["weight_per_pct"])
+    if weight_per_pct < 0:
         raise PlanningError(
-            f"planner ours_plus: flight_time.weight_per_min must be >= 0, got {weight_per_min}"
+            f"planner ours_plus: flight_time.weight_per_pct must be >= 0, got {weight_per_pct}"
         )
     drone = DroneSettings.from_config(raw.pop("drone"))
     cfg = resolve_params(raw)
 
     def time_term(takeoff: np.ndarray) -> FlightTimeTerm:
-        return FlightTimeTerm(drone, weight_per_min, np.asarray(takeoff, float))
+        return FlightTimeTerm(drone, weight_per_pct, np.asarray(takeoff, float))
 
     ext = PlanExtensions(
         weigh_samples=evidence_weigher(proxy, evidence),
-        time_term=time_term if weight_per_min > 0 else None,
+        time_term=time_term if weight_per_pct > 0 else None,
         planner="ours_plus",
     )
     with threadpool_limits(limits=1):

@@ -94,18 +94,26 @@ def test_flight_time_term_is_the_missions_flight_time():
     term = FlightTimeTerm(drone, 6.0, home)
     seconds = float(term.seconds(vps))
     assert seconds == pytest.approx(flight[0].time_s - drone.takeoff_s - drone.landing_s)
-    assert float(term.cost(vps)) == pytest.approx(6.0 * seconds / 60.0)
+    with pytest.raises(ValueError, match="no reference flight"):
+        term.cost(vps)
+    # Referenced on the first two views (greedy order from home: the same two legs out and back):
+    # the full flight costs 6 units per 1 % of theirs.
+    reference = float(term.seconds(vps[:2]))
+    referenced = term.referenced(vps[:2])
+    assert referenced.reference_s == pytest.approx(reference)
+    assert float(referenced.cost(vps)) == pytest.approx(6.0 * 100.0 * seconds / reference)
+    assert float(referenced.cost(vps[:2])) == pytest.approx(600.0)
     # batched over alternatives: the same per set
     both = term.seconds(np.stack([vps, vps[::-1]]))
     assert both[0] == pytest.approx(seconds) and both[1] == pytest.approx(float(term.seconds(vps[::-1])))
     assert greedy_order(vps[:, :3], home).tolist() == [0, 1, 2]
 
 
-def _params(evidence_weight: float, weight_per_min: float) -> dict:
+def _params(evidence_weight: float, weight_per_pct: float) -> dict:
     return {
         **SMALL,
         "evidence": {**EVIDENCE, "weight": evidence_weight},
-        "flight_time": {"weight_per_min": weight_per_min},
+        "flight_time": {"weight_per_pct": weight_per_pct},
         "drone": DRONE,
     }
 
@@ -141,7 +149,7 @@ def test_a_heavy_time_weight_flies_a_shorter_plan(box, ours_box_plan):
     term = FlightTimeTerm(drone, 1.0, home)
     t_ours = float(term.seconds(ours_box_plan.viewpoints))
     t_fast = float(term.seconds(fast.viewpoints))
-    assert fast.info["time_weight_per_min"] == 60.0
+    assert fast.info["time_weight_per_pct"] == 60.0
     assert t_fast < 0.9 * t_ours, (t_fast, t_ours)
 
 
@@ -164,7 +172,7 @@ def test_evidence_from_a_cloud_changes_the_plan(box, ours_box_plan):
 
 
 def test_bad_ours_plus_settings_are_refused(box):
-    with pytest.raises(PlanningError, match="flight_time.weight_per_min must be >= 0"):
+    with pytest.raises(PlanningError, match="flight_time.weight_per_pct must be >= 0"):
         ours_plus.plan(box, CAMERA, _params(0.0, -1.0), seed=0)
     with pytest.raises(PlanningError, match="missing setting"):
         ours_plus.plan(box, CAMERA, SMALL, seed=0)
