@@ -217,8 +217,15 @@ class SurfaceDistance:
 
     def __call__(self, points: np.ndarray, chunk: int = 1_000_000, progress: bool = False) -> np.ndarray:
         """Distances (N,) in metres from points (N, 3) in world metres to the mesh."""
+        return self.nearest(points, chunk, progress)[0]
+
+    def nearest(
+        self, points: np.ndarray, chunk: int = 1_000_000, progress: bool = False
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(distances (N,) in metres, index (N,) of each point's nearest face of the mesh)."""
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         out = np.empty(len(points))
+        faces = np.empty(len(points), dtype=np.int64)
         starts = range(0, len(points), chunk)
         for start in tqdm(starts, desc="accuracy", unit="chunk", disable=not progress or len(starts) < 2):
             local = points[start : start + chunk] - self.origin
@@ -226,7 +233,8 @@ class SurfaceDistance:
             face = self.scene.compute_closest_points(query)["primitive_ids"].numpy().astype(np.int64)
             tri = self.triangles[face]
             out[start : start + chunk] = point_triangle_distance(local, tri[:, 0], tri[:, 1], tri[:, 2])
-        return out
+            faces[start : start + chunk] = face
+        return out, faces
 
 
 def spatial_order(points: np.ndarray) -> np.ndarray:

@@ -21,6 +21,9 @@ Definitions (distances in metres, percentages in 0-100):
   ``ground_height_m``), ``roofs`` (facing up, above it), ``walls`` (facing sideways) and
   ``undersides`` (facing down: eaves, arches). ``gt_share_{class}`` is the class's % of the samples,
   ``comp_{t}_{class}`` the completeness over its samples (null for a class without samples).
+  Accuracy per class: a scored point takes the class of its nearest ground-truth triangle (the
+  triangle's normal, the point's height); ``acc_share_{class}`` is the class's % of the scored
+  points, ``acc{q}_{class}_m`` the percentile over them (null for a class without points).
 - Enclosed surface (``exclude_enclosed``): a sample that no straight ray from it reaches the open
   along (buried faces, sealed interiors; ``scene.enclosure.exposure``) is left out of every
   completeness figure and counted in ``n_gt_samples_enclosed`` and ``gt_enclosed_pct[_{class}]``
@@ -228,7 +231,12 @@ def score_details(
     stage_start = time.perf_counter()
     record["eval_prepare_time_s"] = stage_start - start
     if n_scored:
-        accuracy = SurfaceDistance(region_mesh, origin=region.center)(scored, settings.chunk_points, progress)
+        accuracy, nearest_face = SurfaceDistance(region_mesh, origin=region.center).nearest(
+            scored, settings.chunk_points, progress
+        )
+        point_class = surface_classes(
+            scored, region_mesh.face_normals[nearest_face], settings.ground_height_m, settings.facing_normal_z
+        )
         record["eval_accuracy_time_s"] = time.perf_counter() - stage_start
         stage_start = time.perf_counter()
         tree = cKDTree(scored, balanced_tree=False, compact_nodes=False)
@@ -242,12 +250,14 @@ def score_details(
         warnings.warn(message, EmptyReconstructionWarning, stacklevel=2)
         log.warning(message)
         accuracy = np.zeros(0)
+        point_class = np.zeros(0, dtype=np.int8)
         completeness = np.full(len(samples), np.inf)
         record["eval_accuracy_time_s"] = record["eval_completeness_time_s"] = None
 
     record.update(_accuracy_metrics(accuracy, settings.accuracy_percentiles))
     record.update(_threshold_metrics(accuracy, completeness, settings.completeness_thresholds_m))
     record.update(_class_completeness(completeness, sample_class, settings.completeness_thresholds_m))
+    record.update(_class_accuracy(accuracy, point_class, settings.accuracy_percentiles))
     record.update(_chamfer_metrics(accuracy, completeness, cap))
     record["eval_time_s"] = time.perf_counter() - start
     return ScoreDetails(record, scored, accuracy, region_mesh, samples, completeness)
@@ -301,6 +311,21 @@ def _class_completeness(completeness: np.ndarray, sample_class: np.ndarray, thre
         for t in thresholds:
             covered = 100.0 * np.count_nonzero(in_class <= t) / len(in_class) if len(in_class) else None
             record[f"comp_{threshold_key(t)}_{name}"] = covered
+    return record
+
+
+def _class_accuracy(accuracy: np.ndarray, point_class: np.ndarray, percentiles) -> dict:
+    """Accuracy per surface class of each point's nearest ground-truth face: ``acc_share_{class}``
+    (% of the scored points) and ``acc{q}_{class}_m``. A plan that reconstructs more of the hard
+    surfaces (undersides, recessed walls) has a higher overall percentile for that alone; per class
+    the planners compare on the same kind of surface."""
+    record = {}
+    for index, name in enumerate(SURFACE_CLASSES):
+        in_class = accuracy[point_class == index]
+        record[f"acc_share_{name}"] = 100.0 * len(in_class) / len(accuracy) if len(accuracy) else None
+        for key, value in _accuracy_metrics(in_class, percentiles).items():
+            if key.startswith("acc") and key.endswith("_m") and key not in ("acc_mean_m", "acc_max_m"):
+                record[f"{key[:-2]}_{name}_m"] = value
     return record
 
 

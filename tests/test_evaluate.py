@@ -153,6 +153,24 @@ def test_completeness_per_surface_class_of_a_roof_only_cloud():
         assert total == pytest.approx(record[f"comp_{key}"], abs=1e-9)
 
 
+def test_accuracy_per_surface_class_of_a_cloud_off_the_roof_and_the_walls():
+    # The same block: 1000 points 1 cm above the roof and 3000 points 4 cm off the +x wall (outside
+    # it, at mid-height). Each class's percentiles are its own offset; the overall 90th percentile
+    # is the walls' 4 cm, which the roof's points alone would never show.
+    block = trimesh.creation.box(extents=(4.0, 4.0, 2.0))
+    block.apply_translation((0.0, 0.0, 1.0))
+    gt = trimesh.util.concatenate([plane(-10, 10, -10, 10), block])
+    rng = np.random.default_rng(0)
+    roof = np.column_stack([rng.uniform(-1.5, 1.5, (1000, 2)), np.full(1000, 2.01)])
+    wall = np.column_stack([np.full(3000, 2.04), rng.uniform(-1.5, 1.5, 3000), rng.uniform(0.5, 1.5, 3000)])
+    record = score_points(np.vstack([roof, wall]), gt, Box((-11, -11, -1), (11, 11, 3)))
+    assert record["acc_share_roofs"] == pytest.approx(25.0) and record["acc_share_walls"] == pytest.approx(75.0)
+    assert record["acc90_roofs_m"] == pytest.approx(0.01, abs=1e-6)
+    assert record["acc90_walls_m"] == pytest.approx(0.04, abs=1e-6)
+    assert record["acc90_m"] == pytest.approx(0.04, abs=1e-6)
+    assert record["acc_share_ground"] == 0.0 and record["acc90_ground_m"] is None
+
+
 def test_surface_classes_by_slope_and_height():
     def normal(slope_deg):  # unit normal of a surface tilted slope_deg from horizontal
         a = math.radians(slope_deg)
