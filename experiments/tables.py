@@ -136,7 +136,20 @@ TABLE_SURFACES = tuple(
     )
     for name in SURFACE_CLASSES
 )
-# The ablation of ours (experiment=ablation): its variants are planners named ``ours_<what they undo>``.
+# The ablation of ours (experiment=ablation): its variants are the planners that preset sweeps
+# (conf/planner/ours_<what they undo>.yaml), read from it so that the two never disagree; other
+# planners named ours_* (ours_plus and its time weights) are methods of their own, not variants.
+ABLATION_PRESET = Path(__file__).resolve().parents[1] / "conf" / "experiment" / "ablation.yaml"
+
+
+def ablation_planners() -> tuple[str, ...]:
+    """The planners the ablation preset sweeps (``ours`` and its variants), in its order."""
+    from omegaconf import OmegaConf
+
+    swept = OmegaConf.load(ABLATION_PRESET).hydra.sweeper.params.planner
+    return tuple(name.strip() for name in str(swept).split(","))
+
+
 TABLE_ABLATION = (
     MetricSpec("n_images", "Images", "Images", 0, thousands=True),
     MetricSpec("registered_fraction", "Registered", "Registered", 3, "higher"),
@@ -485,7 +498,8 @@ def tables_from_runs(
     runs: pd.DataFrame, noise_floor: Mapping[str, float] | None = None
 ) -> dict[str, pd.DataFrame]:
     """``build_tables`` on a per-run frame (``experiments.runs.runs_frame``) already loaded."""
-    ours_variants = runs[runs["planner"].astype(str).str.match(r"^ours(_|$)")]
+    at_default = runs["budget"] == DEFAULT_LEVEL if "budget" in runs else True
+    ours_variants = runs[runs["planner"].astype(str).isin(ablation_planners()) & at_default]
     ablation = (
         summarise(ours_variants, TABLE_ABLATION, noise_floor)
         if ours_variants["planner"].nunique() > 1

@@ -366,9 +366,16 @@ def test_ablation_variants_of_ours_get_their_own_table(tmp_path):
         predicted_well_observed_walls_pct=31.0,
     )
     write_run(root, "tomb", "yan", 0, **common, comp_050_walls=50.0, predicted_well_observed_walls_pct=75.0)
+    write_run(
+        root, "tomb", "ours_plus", 0, **common, comp_050_walls=36.0, predicted_well_observed_walls_pct=91.0
+    )
     built = tables.build_tables([root])
     ablation = built["ablation"]
-    assert set(ablation["planner"]) == {"ours", "ours_literal_score"}  # the baselines are not variants
+    # neither the baselines nor ours_plus (a method of its own) are variants
+    assert set(ablation["planner"]) == {"ours", "ours_literal_score"}
+    assert (
+        "ours_plain_overlap" in tables.ablation_planners() and "ours_plus" not in tables.ablation_planners()
+    )
     walls = ablation[ablation["metric"] == "comp_050_walls"].set_index("planner")
     assert walls.loc["ours", "mean"] == 35.0 and walls.loc["ours", "best"]
     assert not walls.loc["ours_literal_score", "best"]
