@@ -323,9 +323,9 @@ def _class_accuracy(accuracy: np.ndarray, point_class: np.ndarray, percentiles) 
     for index, name in enumerate(SURFACE_CLASSES):
         in_class = accuracy[point_class == index]
         record[f"acc_share_{name}"] = 100.0 * len(in_class) / len(accuracy) if len(accuracy) else None
-        for key, value in _accuracy_metrics(in_class, percentiles).items():
-            if key.startswith("acc") and key.endswith("_m") and key not in ("acc_mean_m", "acc_max_m"):
-                record[f"{key[:-2]}_{name}_m"] = value
+        values = _accuracy_metrics(in_class, percentiles)
+        for key in map(percentile_key, percentiles):  # acc90_m -> acc90_walls_m
+            record[f"{key[:-2]}_{name}_m"] = values[key]
     return record
 
 
