@@ -30,6 +30,9 @@ MAPPING_METHODS = ("incremental", "global")
 # COLMAP's ba_global_max_refinements: bundle adjust + filter rounds per global BA of the incremental
 # mapper (it stops earlier once fewer than 0.05 % of the observations change).
 COLMAP_GLOBAL_BA_MAX_REFINEMENTS = 5
+# COLMAP's local bundle adjustment after each registered image: the images sharing most points with
+# it, Ceres iterations, bundle adjust + filter rounds. Settings added after records at these values.
+COLMAP_LOCAL_BA = {"local_ba_num_images": 6, "local_ba_max_iterations": 25, "local_ba_max_refinements": 2}
 
 
 @dataclass
@@ -149,6 +152,13 @@ def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> Sfm
         raise ValueError(f"reconstruct.sfm.mapping.global_ba_max_refinements must be >= 1, got {refinements}")
     incremental.ba_global_max_refinements = refinements
     incremental.mapper.ba_global_ignore_redundant_points3D = bool(pcfg["global_ba_skip_redundant_points"])
+    local = {key: int(pcfg.get(key, colmap)) for key, colmap in COLMAP_LOCAL_BA.items()}
+    for key, value in local.items():
+        if value < 1:
+            raise ValueError(f"reconstruct.sfm.mapping.{key} must be >= 1, got {value}")
+    incremental.mapper.ba_local_num_images = local["local_ba_num_images"]
+    incremental.ba_local_max_num_iterations = local["local_ba_max_iterations"]
+    incremental.ba_local_max_refinements = local["local_ba_max_refinements"]
     incremental.use_prior_position = bool(pcfg["use_prior_position"])
     incremental.use_robust_loss_on_prior_position = bool(pcfg["use_prior_position"]) and bool(
         pcfg["robust_loss_on_prior_position"]

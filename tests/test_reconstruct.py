@@ -649,6 +649,21 @@ def test_global_ba_schedule_reaches_the_mapper():
     assert sfm_options(reconstruct_cfg(**{rounds: 2}).sfm).incremental.ba_global_max_refinements == 2
     with pytest.raises(ValueError, match="global_ba_max_refinements must be >= 1"):
         sfm_options(reconstruct_cfg(**{rounds: 0}).sfm)
+    # The local BA after each registration: COLMAP's values by default, each one setting away.
+    local = (options.mapper.ba_local_num_images, options.ba_local_max_num_iterations, options.ba_local_max_refinements)
+    assert local == (6, 25, 2)
+    small = sfm_options(
+        reconstruct_cfg(
+            **{
+                "sfm.mapping.local_ba_num_images": 4,
+                "sfm.mapping.local_ba_max_iterations": 10,
+                "sfm.mapping.local_ba_max_refinements": 1,
+            }
+        ).sfm
+    ).incremental
+    assert (small.mapper.ba_local_num_images, small.ba_local_max_num_iterations, small.ba_local_max_refinements) == (4, 10, 1)
+    with pytest.raises(ValueError, match="local_ba_num_images must be >= 1"):
+        sfm_options(reconstruct_cfg(**{"sfm.mapping.local_ba_num_images": 0}).sfm)
 
 
 def test_pose_prior_pairs_skip_views_back_to_back():
@@ -775,7 +790,11 @@ def test_reconstruct_flight_reuses_unchanged_outputs(box_flight, box_reconstruct
     assert len(set(keys.values())) == 3
     without = reconstruct_cfg()
     without.sfm.mapping.pop("global_ba_max_refinements")
+    for local in ("local_ba_num_images", "local_ba_max_iterations", "local_ba_max_refinements"):
+        without.sfm.mapping.pop(local)
     assert flight_content_key(box_flight, flight, without, 0) == keys[5]
+    local = "sfm.mapping.local_ba_max_iterations"
+    assert flight_content_key(box_flight, flight, reconstruct_cfg(**{local: 10}), 0) != keys[5]
 
 
 def test_a_run_killed_after_sfm_resumes_from_its_sparse_model(box_flight, box_reconstruction, tmp_path):
