@@ -10,6 +10,10 @@ A variant is ``NAME=KEY=VALUE,KEY=VALUE`` over ``conf/reconstruct/default.yaml``
 (``NAME=`` alone: the defaults). Every variant starts from the same ``recon/sparse`` and
 ``images/`` of the run directory and writes ``--out/<name>/dense.ply``; run it on an idle machine
 (one variant at a time, all cores) and quote the table it prints.
+
+``--true-poses`` replaces the aligned model's camera poses with the simulation's true ones
+(``images/cameras.json``) before dense matching: the difference to a run without it is the part of
+the cloud's error that the SfM cameras cause, the rest is the dense stage's own.
 """
 
 from __future__ import annotations
@@ -38,7 +42,32 @@ def parse_variant(text: str) -> tuple[str, list[str]]:
     return name, overrides
 
 
-def run_variant(run_dir: Path, out_dir: Path, overrides: list[str], scene, eval_settings) -> dict:
+def true_pose_model(sparse_dir: Path, image_dir: Path, out_dir: Path) -> Path:
+    """A copy of the sparse model in ``out_dir`` whose registered cameras sit at their true poses
+    (``image_dir/cameras.json``); points and tracks stay as SfM left them. Returns ``out_dir``."""
+    import numpy as np
+    import pycolmap
+
+    from reconstruct.flight import read_flight
+
+    flight = read_flight(image_dir)
+    truth = {name: (flight.rotations[i], flight.translations[i]) for i, name in enumerate(flight.names)}
+    rec = pycolmap.Reconstruction(sparse_dir)
+    for image_id in rec.reg_image_ids():
+        image = rec.image(image_id)
+        if image.name not in truth:
+            raise ValueError(f"{image_dir}: no true pose for {image.name}")
+        rotation, translation = truth[image.name]
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(rotation)), np.asarray(translation))
+        rec.frame(image.frame_id).set_cam_from_world(image.camera_id, pose)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rec.write(out_dir)
+    return out_dir
+
+
+def run_variant(
+    run_dir: Path, out_dir: Path, overrides: list[str], scene, eval_settings, true_poses: bool = False
+) -> dict:
     """Dense reconstruction of ``run_dir``'s sparse model with ``overrides``; timings and metrics."""
     from omegaconf import OmegaConf
 
@@ -52,8 +81,11 @@ def run_variant(run_dir: Path, out_dir: Path, overrides: list[str], scene, eval_
         raise ValueError(f"unknown dense settings {unknown}")
     cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist(overrides))
     out_dir.mkdir(parents=True, exist_ok=True)
+    sparse = run_dir / "recon" / "sparse"
+    if true_poses:
+        sparse = true_pose_model(sparse, run_dir / "images", out_dir / "sparse_true_poses")
     with stage_time() as clock:
-        dense = dense_reconstruct(run_dir / "recon" / "sparse", run_dir / "images", out_dir, cfg)
+        dense = dense_reconstruct(sparse, run_dir / "images", out_dir, cfg)
     record = {
         "dense_time_s": clock.wall_s,
         "dense_cpu_s": clock.cpu_s,
@@ -70,6 +102,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scene", required=True, help="its scene (conf/scene/<name>.yaml)")
     parser.add_argument("--variant", action="append", required=True, help="NAME=KEY=VALUE,... (repeatable)")
     parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "bench_dense")
+    parser.add_argument(
+        "--true-poses", action="store_true", help="dense-match from the true camera poses, not SfM's"
+    )
     args = parser.parse_args(argv)
     try:
         variants = [parse_variant(v) for v in args.variant]
@@ -90,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = {}
     for name, overrides in variants:
         try:
-            record = run_variant(args.run_dir, args.out / name, overrides, scene, settings)
+            record = run_variant(args.run_dir, args.out / name, overrides, scene, settings, args.true_poses)
         except ValueError as exc:
             print(f"error: variant {name}: {exc}", file=sys.stderr)
             return 2

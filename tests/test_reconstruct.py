@@ -650,7 +650,11 @@ def test_global_ba_schedule_reaches_the_mapper():
     with pytest.raises(ValueError, match="global_ba_max_refinements must be >= 1"):
         sfm_options(reconstruct_cfg(**{rounds: 0}).sfm)
     # The local BA after each registration: COLMAP's values by default, each one setting away.
-    local = (options.mapper.ba_local_num_images, options.ba_local_max_num_iterations, options.ba_local_max_refinements)
+    local = (
+        options.mapper.ba_local_num_images,
+        options.ba_local_max_num_iterations,
+        options.ba_local_max_refinements,
+    )
     assert local == (6, 25, 2)
     small = sfm_options(
         reconstruct_cfg(
@@ -661,7 +665,11 @@ def test_global_ba_schedule_reaches_the_mapper():
             }
         ).sfm
     ).incremental
-    assert (small.mapper.ba_local_num_images, small.ba_local_max_num_iterations, small.ba_local_max_refinements) == (4, 10, 1)
+    assert (
+        small.mapper.ba_local_num_images,
+        small.ba_local_max_num_iterations,
+        small.ba_local_max_refinements,
+    ) == (4, 10, 1)
     with pytest.raises(ValueError, match="local_ba_num_images must be >= 1"):
         sfm_options(reconstruct_cfg(**{"sfm.mapping.local_ba_num_images": 0}).sfm)
 
@@ -1103,3 +1111,16 @@ def test_image_ids_follow_the_flight_order(box_flight, box_reconstruction):
     with pycolmap.Database.open(out_dir / "database.db") as db:
         by_id = sorted((image.image_id, image.name) for image in db.read_all_images())
     assert [name for _, name in by_id] == list(flight.names)
+
+
+def test_true_pose_model_puts_every_camera_at_its_true_pose(box_flight, box_reconstruction, tmp_path):
+    """experiments.bench_dense --true-poses: the copy's cameras are the simulation's (1e-9 m, 1e-4 deg)."""
+    from experiments.bench_dense import true_pose_model
+
+    out_dir, record = box_reconstruction
+    assert record["position_error_median_m"] > 1e-4  # SfM's cameras are off by millimetres at least
+    copy = pycolmap.Reconstruction(true_pose_model(out_dir / "sparse", box_flight, tmp_path / "true"))
+    errors = pose_errors(copy, read_flight(box_flight))
+    assert errors["n_registered"] == 33
+    assert errors["position_error_max_m"] < 1e-9 and errors["rotation_error_max_deg"] < 1e-4  # arccos near 1
+    assert copy.num_points3D() == pycolmap.Reconstruction(out_dir / "sparse").num_points3D()
