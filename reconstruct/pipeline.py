@@ -64,7 +64,10 @@ OUTPUT_ONLY_KEYS = ("keep_dense_workspace",)
 # sfm.mapping settings only the global mapper reads.
 GLOBAL_ONLY_MAPPING_KEYS = ("global_prior_ba", "global_prior_ba_max_iterations")
 # sfm.mapping settings that enter a flight's key only away from COLMAP's value (added after records).
-COLMAP_VALUED_MAPPING_KEYS = {"global_ba_max_refinements": COLMAP_GLOBAL_BA_MAX_REFINEMENTS, **COLMAP_LOCAL_BA}
+COLMAP_VALUED_MAPPING_KEYS = {
+    "global_ba_max_refinements": COLMAP_GLOBAL_BA_MAX_REFINEMENTS,
+    **COLMAP_LOCAL_BA,
+}
 # dense.fusion's memory budget changes a cloud only for a flight whose fusion would exceed it.
 FUSION_BUDGET_KEY = "max_memory_gb"
 
