@@ -33,9 +33,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pandas as pd
-import pycolmap
 import trimesh
 
+from experiments.observations import GT_REGION_FILE, SPARSE_DIR
 from experiments.runs import RunDirectoryError, read_run_config
 from reconstruct.dense import (
     View,
@@ -44,14 +44,13 @@ from reconstruct.dense import (
     prepare_workspace,
     read_views,
     select_partners,
+    sparse_points_by_image,
 )
 from scene.enclosure import raycasting_scene
 from scene.io import write_text_atomic
 
 log = logging.getLogger(__name__)
 
-GT_REGION_FILE = Path("eval") / "gt_region.ply"
-SPARSE_DIR = Path("recon") / "sparse"
 IMAGES_DIR = Path("images")
 # A ground-truth normal within this many degrees of horizontal makes a wall pixel.
 WALL_MAX_NORMAL_Z = float(np.sin(np.radians(45.0)))
@@ -117,7 +116,7 @@ def analyse_run(run_dir: Path, n_views: int | None, workdir: Path) -> pd.DataFra
     workspace = prepare_workspace(run_dir / SPARSE_DIR, run_dir / IMAGES_DIR, workdir / "dense", dense_cfg)
     views = read_views(workspace)
     partners = select_partners(workspace, views, dense_cfg)
-    rec = pycolmap.Reconstruction(workspace / "sparse")
+    points_by_name = sparse_points_by_image(workspace)
     gt_mesh = trimesh.load(run_dir / GT_REGION_FILE, process=False, force="mesh")
     scene = raycasting_scene(gt_mesh)
 
@@ -127,10 +126,7 @@ def analyse_run(run_dir: Path, n_views: int | None, workdir: Path) -> pd.DataFra
     rows = []
     for i, name in enumerate(names):
         ref = views[name]
-        image = next(rec.image(i_) for i_ in rec.reg_image_ids() if rec.image(i_).name == name)
-        ref_points = np.array(
-            [rec.point3D(p.point3D_id).xyz for p in image.points2D if p.has_point3D()]
-        ).reshape(-1, 3)
+        ref_points = points_by_name[name]
         ref_gray = cv2.imread(str(workspace / "images" / name), cv2.IMREAD_GRAYSCALE)
         gt, points, normals = ground_truth_depth(scene, ref)
         walls = np.abs(normals[..., 2]) < WALL_MAX_NORMAL_Z

@@ -508,17 +508,23 @@ def write_maps(workspace: Path, name: str, depth: np.ndarray, normals: np.ndarra
     write_atomic(stereo / "normal_maps" / f"{name}{DEPTH_SUFFIX}", lambda p: normal_map.write(p))
 
 
-def compute_depth_maps_cpu(workspace: Path, cfg: Mapping) -> dict[str, int]:
-    """CPU back-end: SGBM depth + normal maps for every view that has partners; return valid-pixel counts."""
-    workspace = Path(workspace)
-    views = read_views(workspace)
-    partners = select_partners(workspace, views, cfg)
-    rec = pycolmap.Reconstruction(workspace / "sparse")
+def sparse_points_by_image(workspace: Path) -> dict[str, np.ndarray]:
+    """The sparse world points (P, 3) each registered view of the workspace sees, by image name."""
+    rec = pycolmap.Reconstruction(Path(workspace) / "sparse")
     points_by_name = {}
     for image_id in rec.reg_image_ids():
         image = rec.image(image_id)
         ids = [p.point3D_id for p in image.points2D if p.has_point3D()]
         points_by_name[image.name] = np.array([rec.point3D(i).xyz for i in ids]) if ids else np.zeros((0, 3))
+    return points_by_name
+
+
+def compute_depth_maps_cpu(workspace: Path, cfg: Mapping) -> dict[str, int]:
+    """CPU back-end: SGBM depth + normal maps for every view that has partners; return valid-pixel counts."""
+    workspace = Path(workspace)
+    views = read_views(workspace)
+    partners = select_partners(workspace, views, cfg)
+    points_by_name = sparse_points_by_image(workspace)
     min_consistent = int(cfg["min_consistent_partners"])
     rel_tol = float(cfg["consistency_rel_tol"])
     window = int(cfg["normal_window_px"])
