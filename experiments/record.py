@@ -10,7 +10,8 @@ lives in ``results/cells/<preset>/<scene>/<planner>/<budget>/seed<k>/`` (budget:
         --study study/default_v4 [--set reconstruct.keep_dense_workspace=false] [--force]
 
 ``--queue`` runs each ``scene/planner/seed[/budget]`` cell with ``run.py`` from a detached git worktree
-of HEAD (the committed code: editing the checkout while a cell runs cannot change it; the stage cache
+of HEAD, or of ``--revision REV`` (a study's cells all from one code revision while main moves on; the
+committed code: editing the checkout while a cell runs cannot change it; the stage cache
 stays shared), into ``--study/<scene>/<planner>/<budget>/seed<k>``, then records and commits that cell
 (``git commit -- <its record>``: nothing else staged is swept in) before it starts the next. A cell
 already recorded is skipped unless ``--force``. A failed cell's ``metrics.json`` is recorded too.
@@ -124,19 +125,31 @@ def run_queue(
     overrides: Sequence[str] = (),
     force: bool = False,
     commit: bool = True,
+    revision: str = "HEAD",
 ) -> int:
-    """Run the cells one after the other from a worktree of HEAD; record (and commit) each one.
+    """Run the cells one after the other from a worktree of ``revision``; record (and commit) each one.
 
-    Returns the number of cells that failed."""
-    head = subprocess.run(
-        ["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], check=True, capture_output=True, text=True
-    ).stdout.strip()
-    dirty = subprocess.run(
-        ["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no"],
-        check=True,
+    Returns the number of cells that failed.
+
+    Raises:
+        ValueError: ``revision`` names no commit of the repository."""
+    found = subprocess.run(
+        ["git", "-C", str(ROOT), "rev-parse", "--verify", "--quiet", "--short", f"{revision}^{{commit}}"],
         capture_output=True,
         text=True,
-    ).stdout.strip()
+    )
+    if found.returncode != 0:
+        raise ValueError(f"--revision {revision!r} names no commit of {ROOT}")
+    head = found.stdout.strip()
+    dirty = (
+        revision == "HEAD"
+        and subprocess.run(
+            ["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no"],
+            check=True,
+            capture_output=True,
+            text=True,
+        ).stdout.strip()
+    )
     if dirty:
         print(
             f"note: the cells run the committed code at {head}; uncommitted changes are not in them",
@@ -197,11 +210,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument("--set", action="append", default=[], help="a run.py override for every queued cell")
     parser.add_argument("--force", action="store_true", help="run queued cells that are recorded already")
+    parser.add_argument(
+        "--revision", default="HEAD", help="the commit the queued cells run (default HEAD): one per study"
+    )
     args = parser.parse_args(argv)
     try:
         if args.queue:
             cells = [parse_cell(c) for c in args.queue]
-            return 1 if run_queue(cells, args.preset, args.study, args.set, args.force) else 0
+            failed = run_queue(cells, args.preset, args.study, args.set, args.force, revision=args.revision)
+            return 1 if failed else 0
         if not args.run_dirs:
             parser.error("give run directories to record, or --queue")
         for run_dir in args.run_dirs:

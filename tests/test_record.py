@@ -7,7 +7,7 @@ import subprocess
 
 import pytest
 
-from experiments.record import commit_record, parse_cell, record_cell, record_dir, summary_line
+from experiments.record import commit_record, parse_cell, record_cell, record_dir, run_queue, summary_line
 from experiments.runs import RunDirectoryError
 from tests.experiments_fixtures import square_plan, write_run
 
@@ -91,3 +91,9 @@ def test_a_budget_cell_has_its_own_record_and_name(tmp_path):
     dest, metrics = record_cell(run, "study", root=tmp_path / "cells")
     assert dest == tmp_path / "cells" / "study" / "tomb" / "ours" / "high" / "seed1"
     assert summary_line(metrics).startswith("Cell record: tomb / ours / seed 1 / high budget: 402 images")
+
+
+def test_a_queue_on_an_unknown_revision_runs_nothing(tmp_path):
+    with pytest.raises(ValueError, match="names no commit"):
+        run_queue([("tomb", "ours", 0, "default")], "default", tmp_path, revision="no-such-revision-x")
+    assert not any(tmp_path.iterdir())
