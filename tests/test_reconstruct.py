@@ -40,7 +40,13 @@ from reconstruct.flight import Flight, read_flight, simulate_gnss
 from reconstruct.fusion_chunks import owning_chunk, plan_chunks, read_visibility
 from reconstruct.pipeline import build_proxy, flight_content_key, proxy_flight_config, reconstruct_flight
 from reconstruct.proxy import degraded_ground_truth, oriented_cloud, poisson_proxy
-from reconstruct.sfm import map_reconstruction, pose_prior_pairs, sfm_options, write_pose_priors
+from reconstruct.sfm import (
+    COLMAP_LOCAL_BA,
+    map_reconstruction,
+    pose_prior_pairs,
+    sfm_options,
+    write_pose_priors,
+)
 from reconstruct.timing import stage_time
 from scene.base import Box, MeshPart, Scene
 from scene.camera import Intrinsics, cam_from_world, look_at
@@ -649,27 +655,22 @@ def test_global_ba_schedule_reaches_the_mapper():
     assert sfm_options(reconstruct_cfg(**{rounds: 2}).sfm).incremental.ba_global_max_refinements == 2
     with pytest.raises(ValueError, match="global_ba_max_refinements must be >= 1"):
         sfm_options(reconstruct_cfg(**{rounds: 0}).sfm)
-    # The local BA after each registration: COLMAP's values by default, each one setting away.
+    # The local BA after each registration: 4 images, 10 iterations, 1 round by default; COLMAP's
+    # 6, 25, 2 one setting away.
     local = (
         options.mapper.ba_local_num_images,
         options.ba_local_max_num_iterations,
         options.ba_local_max_refinements,
     )
-    assert local == (6, 25, 2)
-    small = sfm_options(
-        reconstruct_cfg(
-            **{
-                "sfm.mapping.local_ba_num_images": 4,
-                "sfm.mapping.local_ba_max_iterations": 10,
-                "sfm.mapping.local_ba_max_refinements": 1,
-            }
-        ).sfm
+    assert local == (4, 10, 1)
+    colmap = sfm_options(
+        reconstruct_cfg(**{f"sfm.mapping.{k}": v for k, v in COLMAP_LOCAL_BA.items()}).sfm
     ).incremental
     assert (
-        small.mapper.ba_local_num_images,
-        small.ba_local_max_num_iterations,
-        small.ba_local_max_refinements,
-    ) == (4, 10, 1)
+        colmap.mapper.ba_local_num_images,
+        colmap.ba_local_max_num_iterations,
+        colmap.ba_local_max_refinements,
+    ) == (6, 25, 2)
     with pytest.raises(ValueError, match="local_ba_num_images must be >= 1"):
         sfm_options(reconstruct_cfg(**{"sfm.mapping.local_ba_num_images": 0}).sfm)
 
@@ -794,15 +795,19 @@ def test_reconstruct_flight_reuses_unchanged_outputs(box_flight, box_reconstruct
     assert flight_content_key(box_flight, flight, reconstruct_cfg(**{budget: 0.04}), 0) != key
     # A mapper setting added after the records: at COLMAP's own value it leaves the key alone.
     rounds = "sfm.mapping.global_ba_max_refinements"
-    keys = {n: flight_content_key(box_flight, flight, reconstruct_cfg(**{rounds: n}), 0) for n in (1, 2, 5)}
+    colmap_local = {f"sfm.mapping.{k}": v for k, v in COLMAP_LOCAL_BA.items()}
+    keys = {
+        n: flight_content_key(box_flight, flight, reconstruct_cfg(**{rounds: n, **colmap_local}), 0)
+        for n in (1, 2, 5)
+    }
     assert len(set(keys.values())) == 3
     without = reconstruct_cfg()
     without.sfm.mapping.pop("global_ba_max_refinements")
-    for local in ("local_ba_num_images", "local_ba_max_iterations", "local_ba_max_refinements"):
+    for local in COLMAP_LOCAL_BA:
         without.sfm.mapping.pop(local)
     assert flight_content_key(box_flight, flight, without, 0) == keys[5]
-    local = "sfm.mapping.local_ba_max_iterations"
-    assert flight_content_key(box_flight, flight, reconstruct_cfg(**{local: 10}), 0) != keys[5]
+    # The lighter local BA of the defaults is a new key.
+    assert flight_content_key(box_flight, flight, reconstruct_cfg(), 0) != keys[5]
 
 
 def test_a_run_killed_after_sfm_resumes_from_its_sparse_model(box_flight, box_reconstruction, tmp_path):
