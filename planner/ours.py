@@ -19,7 +19,7 @@ import copy
 import math
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -384,16 +384,8 @@ def plan_with(
         fallback_distance_factors=fallbacks,
         fallback_tilt_deg=tilts,
     )
-    cov_settings = CandidateSettings(
-        distance_m=d_c,
-        group_size=int(cv["group_size"]),
-        n_frontal=int(c["n_frontal"]),
-        frontal_jitter_deg=float(c["frontal_jitter_deg"]),
-        n_side=int(c["n_side"]),
-        side_angle_deg=float(c["side_angle_deg"]),
-        fallback_distance_factors=fallbacks,
-        fallback_tilt_deg=tilts,
-    )
+    # Coverage candidates: the detail candidates' pattern at the coverage distance and group size.
+    cov_settings = replace(det_settings, distance_m=d_c, group_size=int(cv["group_size"]))
     for s in (det_settings, cov_settings):
         if s.group_size < 1 or s.n_frontal < 1 or s.n_side < 0:
             raise PlanningError(f"planner ours: need group_size >= 1, n_frontal >= 1, n_side >= 0, got {s}")
