@@ -250,8 +250,10 @@ def read_run_config(run_dir: str | Path):
 
 
 def read_plan_record(run_dir: str | Path) -> dict:
-    """The run's ``plan/plan.json`` record ({} if the run has none)."""
+    """The run's ``plan/plan.json`` record, or a cell record folder's ``plan.json`` ({} if neither)."""
     path = Path(run_dir) / PLAN_FILE
+    if not path.is_file():
+        path = Path(run_dir) / PLAN_FILE.name
     if not path.is_file():
         return {}
     try:
