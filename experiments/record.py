@@ -141,6 +141,16 @@ def run_queue(
     if found.returncode != 0:
         raise ValueError(f"--revision {revision!r} names no commit of {ROOT}")
     head = found.stdout.strip()
+    if commit:
+        records = record_dir(preset, "scene", "planner", 0)
+        ignored = subprocess.run(
+            ["git", "-C", str(ROOT), "check-ignore", "-q", "--", os.path.relpath(records, ROOT)]
+        )
+        if ignored.returncode == 0:
+            raise ValueError(
+                f"{os.path.relpath(records.parents[3], ROOT)} is ignored by git (.gitignore): "
+                "its records could not be committed; nothing run"
+            )
     dirty = (
         revision == "HEAD"
         and subprocess.run(

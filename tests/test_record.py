@@ -97,3 +97,10 @@ def test_a_queue_on_an_unknown_revision_runs_nothing(tmp_path):
     with pytest.raises(ValueError, match="names no commit"):
         run_queue([("tomb", "ours", 0, "default")], "default", tmp_path, revision="no-such-revision-x")
     assert not any(tmp_path.iterdir())
+
+
+def test_a_queue_whose_records_git_ignores_runs_nothing(tmp_path):
+    # .gitignore ignores __pycache__/ folders anywhere: a study of that name could never be committed.
+    with pytest.raises(ValueError, match="is ignored by git"):
+        run_queue([("tomb", "ours", 0, "default")], "__pycache__", tmp_path)
+    assert not any(tmp_path.iterdir())
