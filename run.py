@@ -108,6 +108,9 @@ def run_cell(cfg: DictConfig, run_dir: Path, record: dict) -> None:
     record["stage"] = "scene"
     drone = DroneSettings.from_config(OmegaConf.to_container(cfg.drone, resolve=True))
     scene = load_scene(cfg.scene, cache_dir=cfg.cache_dir)
+    # Everything a camera could see, hashed: two records of one scene on two machines are comparable
+    # image for image only when these agree.
+    record["scene_fingerprint"] = scene.fingerprint
     intrinsics = Intrinsics(**cfg.camera)
 
     record["stage"] = "proxy"

@@ -86,6 +86,9 @@ def test_every_cell_scores_finite_numbers(smoke_sweep):
 
         assert mission_main([str(run_dir), "--format", "wpml", "--out", str(run_dir / "m.kmz")]) == 0
         assert len(list(run_dir.glob("m*.kmz"))) == r["n_batteries"]
+    # One scene, one fingerprint (32 hex digits of what the cameras see) in every cell's record.
+    assert len({r["scene_fingerprint"] for r in records}) == 1
+    assert len(records[0]["scene_fingerprint"]) == 32
     by_planner = {r["planner"]: r for r in records}
     # ours plans close, frontal wall views; the lawnmower's grid does not.
     walls = "predicted_well_observed_walls_pct"
