@@ -25,6 +25,7 @@ from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -32,6 +33,9 @@ import pycolmap
 from tqdm import tqdm
 
 from scene.io import write_atomic, write_text_atomic
+
+if TYPE_CHECKING:
+    import scipy.sparse
 
 log = logging.getLogger(__name__)
 
@@ -519,11 +523,79 @@ def sparse_points_by_image(workspace: Path) -> dict[str, np.ndarray]:
     return points_by_name
 
 
+def reference_views(incidence, per_point: int, min_new_points: int) -> np.ndarray:
+    """Which views get a depth map when each sparse point needs only ``per_point`` of them.
+
+    Greedy cover: repeatedly take the view that sees the most points still seen by fewer than
+    ``per_point`` chosen views, until no view adds ``min_new_points`` of them. A point seen by
+    fewer views keeps all of them that add enough. Views left out still serve as stereo partners.
+
+    Args:
+        incidence: (V, P) sparse 0/1 matrix, view v sees sparse point p.
+        per_point: chosen views wanted per point (>= 1).
+        min_new_points: a view adding fewer under-covered points than this is not chosen (>= 1).
+
+    Returns:
+        (V,) bool, True for a view that gets a depth map.
+    """
+    import scipy.sparse  # here: the CUDA back-end's machine needs only numpy, OpenCV and pycolmap
+
+    if int(per_point) < 1 or int(min_new_points) < 1:
+        raise ValueError(
+            f"reference views: per_point and min_new_points must be >= 1, got {per_point}, {min_new_points}"
+        )
+    A = scipy.sparse.csr_matrix(incidence, dtype=np.int32)
+    chosen = np.zeros(A.shape[0], dtype=bool)
+    covered = np.zeros(A.shape[1], dtype=np.int32)
+    while True:
+        gains = A @ (covered < per_point).astype(np.int32)
+        gains[chosen] = -1
+        best = int(np.argmax(gains))
+        if gains[best] < min_new_points:
+            return chosen
+        chosen[best] = True
+        covered[A.indices[A.indptr[best] : A.indptr[best + 1]]] += 1
+
+
+def sparse_incidence(workspace: Path, names) -> scipy.sparse.csr_matrix:
+    """(len(names), P) 0/1 matrix: which sparse points of the workspace's model each view sees."""
+    import scipy.sparse
+
+    rec = pycolmap.Reconstruction(Path(workspace) / "sparse")
+    by_name = {rec.image(i).name: rec.image(i) for i in rec.reg_image_ids()}
+    column = {pid: k for k, pid in enumerate(sorted(rec.point3D_ids()))}
+    rows, cols = [], []
+    for r, name in enumerate(names):
+        image = by_name.get(name)
+        ids = {p.point3D_id for p in image.points2D if p.has_point3D()} if image is not None else set()
+        rows.extend([r] * len(ids))
+        cols.extend(column[i] for i in ids)
+    data = np.ones(len(rows), dtype=np.int8)
+    return scipy.sparse.csr_matrix((data, (rows, cols)), shape=(len(names), len(column)))
+
+
 def compute_depth_maps_cpu(workspace: Path, cfg: Mapping) -> dict[str, int]:
-    """CPU back-end: SGBM depth + normal maps for every view that has partners; return valid-pixel counts."""
+    """CPU back-end: SGBM depth + normal maps for every view that has partners (or, with
+    ``reference_views_per_point`` set, for the views ``reference_views`` keeps); return valid-pixel
+    counts (0 for a view without a map)."""
     workspace = Path(workspace)
     views = read_views(workspace)
     partners = select_partners(workspace, views, cfg)
+    per_point = cfg.get("reference_views_per_point")
+    if per_point is not None:
+        order = sorted(views)
+        keep = reference_views(
+            sparse_incidence(workspace, order), int(per_point), int(cfg.get("reference_min_new_points", 1))
+        )
+        log.info(
+            "dense: %d of %d views get a depth map (%d per sparse point), the rest serve as partners",
+            int(keep.sum()),
+            len(order),
+            int(per_point),
+        )
+        references = {name for name, k in zip(order, keep, strict=True) if k}
+    else:
+        references = set(views)
     points_by_name = sparse_points_by_image(workspace)
     min_consistent = int(cfg["min_consistent_partners"])
     rel_tol = float(cfg["consistency_rel_tol"])
@@ -537,7 +609,7 @@ def compute_depth_maps_cpu(workspace: Path, cfg: Mapping) -> dict[str, int]:
 
     def one_view(name: str) -> tuple[str, int]:
         ref = views[name]
-        if not partners.get(name):
+        if name not in references or not partners.get(name):
             return name, 0
         ref_gray = gray(name)
         depths = []

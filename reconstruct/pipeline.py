@@ -70,6 +70,8 @@ COLMAP_VALUED_MAPPING_KEYS = {
 }
 # dense.fusion's memory budget changes a cloud only for a flight whose fusion would exceed it.
 FUSION_BUDGET_KEY = "max_memory_gb"
+# dense: depth maps for a cover of the views only; at null (every view) it leaves the keys alone.
+REFERENCE_VIEWS_KEYS = ("reference_views_per_point", "reference_min_new_points")
 
 
 def _plain(value):
@@ -94,6 +96,8 @@ def _in_effect(section: str, value, fusion_bytes: float = 0.0):
         budget = value["fusion"].get(FUSION_BUDGET_KEY)
         binds = budget is not None and fusion_bytes > float(budget) * 1e9
         fusion = {k: v for k, v in value["fusion"].items() if k != FUSION_BUDGET_KEY or binds}
+        if value.get(REFERENCE_VIEWS_KEYS[0]) is None:  # added after records: off, every view as before
+            value = {k: v for k, v in value.items() if k not in REFERENCE_VIEWS_KEYS}
         return {**value, "fusion": fusion}
     if section != "sfm" or not isinstance(value, dict) or not isinstance(value.get("mapping"), dict):
         return value

@@ -163,3 +163,26 @@ def test_patch_match_depth_and_fusion_of_a_textured_plane(tmp_path):
     footprint = 2 * distance * np.tan(np.radians([intr.hfov_deg, intr.vfov_deg]) / 2)
     extent = np.sort((points.max(0) - points.min(0))[:2])[::-1]
     assert np.all(extent > 0.95 * footprint)
+
+
+def test_reference_views_give_depth_maps_to_a_cover_only(tmp_path):
+    """Nine views that all see the same 63 sparse points: with 3 reference views per point only the
+    first three of the greedy cover get a depth map, as accurate as before; the other six still
+    serve as their partners."""
+    intr = Intrinsics(320, 240, 60.0)
+    source, _ = build_plane_workspace(tmp_path / "src", intr)
+    cfg = {**dense_cfg(), "num_threads": 2, "reference_views_per_point": 3, "reference_min_new_points": 1}
+    workspace = prepare_workspace(source / "sparse", source / "images", tmp_path / "ws", cfg)
+    valid_pixels = compute_depth_maps_cpu(workspace, cfg)
+    mapped = sorted(name for name, count in valid_pixels.items() if count > 0)
+    assert mapped == ["000000.png", "000001.png", "000002.png"]
+    assert sorted(p.name for p in (workspace / "stereo" / "depth_maps").iterdir()) == [
+        f"{name}.geometric.bin" for name in mapped
+    ]
+    views = read_views(workspace)
+    depth_map = pycolmap.DepthMap()
+    depth_map.read(workspace / "stereo" / "depth_maps" / "000001.png.geometric.bin")
+    depth = depth_map.to_array()
+    valid = depth > 0
+    assert valid.sum() > 0.5 * depth.size
+    assert np.median(np.abs(depth[valid] - exact_depth(views["000001.png"])[valid]) / depth[valid]) < 0.01

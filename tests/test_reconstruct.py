@@ -32,6 +32,7 @@ from reconstruct.dense import (
     normals_from_depth,
     pair_depth,
     prepare_workspace,
+    reference_views,
     textured_pixels,
     write_maps,
 )
@@ -789,6 +790,10 @@ def test_reconstruct_flight_reuses_unchanged_outputs(box_flight, box_reconstruct
     # The proxy settings do not touch the flight's reconstruction.
     assert flight_content_key(box_flight, flight, reconstruct_cfg(**{"proxy.face_budget": 10}), 0) == key
     # Fusing the 33 views of 320 x 240 holds 51 MB: a budget above that changes nothing, one below does.
+    # Reference views for a cover only: off (null) it leaves the key as before it existed.
+    cover = "dense.reference_views_per_point"
+    assert flight_content_key(box_flight, flight, reconstruct_cfg(**{cover: None}), 0) == key
+    assert flight_content_key(box_flight, flight, reconstruct_cfg(**{cover: 12}), 0) != key
     budget = "dense.fusion.max_memory_gb"
     assert flight_content_key(box_flight, flight, reconstruct_cfg(**{budget: 0.06}), 0) == key
     assert flight_content_key(box_flight, flight, reconstruct_cfg(**{budget: None}), 0) == key
@@ -1129,3 +1134,17 @@ def test_true_pose_model_puts_every_camera_at_its_true_pose(box_flight, box_reco
     assert errors["n_registered"] == 33
     assert errors["position_error_max_m"] < 1e-9 and errors["rotation_error_max_deg"] < 1e-4  # arccos near 1
     assert copy.num_points3D() == pycolmap.Reconstruction(out_dir / "sparse").num_points3D()
+
+
+def test_reference_views_cover_each_sparse_point_k_times():
+    """Views 0-4 see points 0-29, view 5 alone sees points 30-39. Two views per point: the cover
+    takes views 0 and 1 for the shared points, then view 5 for its ten, unless a view must add more
+    than ten under-covered points."""
+    incidence = np.zeros((6, 40), dtype=np.int8)
+    incidence[:5, :30] = 1
+    incidence[5, 30:] = 1
+    assert reference_views(incidence, 2, 5).tolist() == [True, True, False, False, False, True]
+    assert reference_views(incidence, 2, 11).tolist() == [True, True, False, False, False, False]
+    assert reference_views(incidence, 5, 1).tolist() == [True] * 6
+    with pytest.raises(ValueError, match="must be >= 1"):
+        reference_views(incidence, 0, 1)
