@@ -65,6 +65,12 @@ def _machines(runs: pd.DataFrame) -> str:
     return "; ".join(f"{label} ({_count(n, 'cell')})" for label, n in counts.items())
 
 
+def _revision(runs: pd.DataFrame) -> str:
+    """The study's one code revision (short), or HEAD when its cells come from several or none."""
+    commits = set(runs.get("code_commit", pd.Series(dtype=object)).dropna())
+    return str(next(iter(commits)))[:7] if len(commits) == 1 else "HEAD"
+
+
 def study_readme(study: str, runs: pd.DataFrame) -> str:
     """The study folder's README: cells, code, machines, how to run and regenerate."""
     ok = runs[runs["status"] == "ok"]
@@ -93,11 +99,12 @@ def study_readme(study: str, runs: pd.DataFrame) -> str:
         "`fronts_images.png` / `fronts_flight_time.png` (quality per image over every budget),",
         "`cells.csv` (every cell's metrics.json).",
         "",
-        "**Run a cell and commit its record** (from a worktree of HEAD; skips recorded cells):",
+        "**Run a cell and commit its record** (from a worktree of the study's revision; skips recorded",
+        "cells):",
         "",
         "```bash",
         "python -m experiments.record --queue tomb/ours/0 tomb/yan/0/low \\",
-        f"    --preset {study} --study study/{study}",
+        f"    --preset {study} --study study/{study} --revision {_revision(runs)}",
         "```",
         "",
     ]
