@@ -321,20 +321,19 @@ def plot_fronts(points: pd.DataFrame, cost: str = "n_images") -> Figure:
             ax.grid(alpha=0.3)
             if r == 0:
                 ax.set_title(scene_name(scene))
+    figure_legend(fig, axes, legend_in / width_in, title="black edge: default budget", title_fontsize=7)
+    return fig
+
+
+def figure_legend(fig: Figure, axes, width_fraction: float, **kwargs) -> None:
+    """One legend for all ``axes`` (each label once) in the right ``width_fraction`` of ``fig``, the
+    panels laid out in the rest."""
     handles = {}
-    for ax in axes.flat:
+    for ax in np.ravel(axes):
         for handle, text in zip(*ax.get_legend_handles_labels(), strict=True):
             handles.setdefault(text, handle)
-    fig.legend(
-        list(handles.values()),
-        list(handles),
-        loc="center right",
-        frameon=False,
-        title="black edge: default budget",
-        title_fontsize=7,
-    )
-    fig.tight_layout(rect=(0.0, 0.0, 1.0 - legend_in / width_in, 1.0))
-    return fig
+    fig.legend(list(handles.values()), list(handles), loc="center right", frameon=False, **kwargs)
+    fig.tight_layout(rect=(0.0, 0.0, 1.0 - width_fraction, 1.0))
 
 
 def write_fronts(

@@ -32,7 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(ROOT))
 
-from experiments.fronts import ACCURACY, COMPLETENESS  # noqa: E402
+from experiments.fronts import ACCURACY, COMPLETENESS, figure_legend  # noqa: E402
 from experiments.runs import (  # noqa: E402
     RunDirectoryError,
     load_runs,
@@ -131,12 +131,7 @@ def plot_front(points: pd.DataFrame):
             ax.grid(alpha=0.3)
             if r == 0:
                 ax.set_title(scene_name(scene))
-    handles = {}
-    for ax in axes.flat:
-        for handle, text in zip(*ax.get_legend_handles_labels(), strict=True):
-            handles.setdefault(text, handle)
-    fig.legend(list(handles.values()), list(handles), loc="center right", frameon=False)
-    fig.tight_layout(rect=(0.0, 0.0, 1.0 - 1.6 / (3.9 * len(scenes) + 1.6), 1.0))
+    figure_legend(fig, axes, 1.6 / (3.9 * len(scenes) + 1.6))
     return fig
 
 
