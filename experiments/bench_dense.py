@@ -76,7 +76,10 @@ def run_variant(
     from reconstruct.timing import stage_time
 
     cfg = OmegaConf.load(ROOT / "conf" / "reconstruct" / "default.yaml").dense
-    unknown = [o.split("=")[0] for o in overrides if OmegaConf.select(cfg, o.split("=")[0]) is None]
+    absent = object()  # a setting whose default is null (fusion.max_memory_gb) is known
+    unknown = [
+        o.split("=")[0] for o in overrides if OmegaConf.select(cfg, o.split("=")[0], default=absent) is absent
+    ]
     if unknown:
         raise ValueError(f"unknown dense settings {unknown}")
     cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist(overrides))

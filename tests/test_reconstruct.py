@@ -1148,3 +1148,14 @@ def test_reference_views_cover_each_sparse_point_k_times():
     assert reference_views(incidence, 5, 1).tolist() == [True] * 6
     with pytest.raises(ValueError, match="must be >= 1"):
         reference_views(incidence, 0, 1)
+
+
+def test_bench_dense_knows_the_settings_whose_default_is_null(tmp_path):
+    """A variant may set fusion.max_memory_gb or reference_views_per_point (null by default); a
+    misspelt setting is refused by name before any work."""
+    from experiments.bench_dense import run_variant
+
+    overrides = ["fusion.max_memory_gb=2", "reference_views_per_point=8", "num_partner=3"]
+    with pytest.raises(ValueError, match=r"unknown dense settings \['num_partner'\]"):
+        run_variant(tmp_path, tmp_path / "out", overrides, scene=None, eval_settings=None)
+    assert not (tmp_path / "out").exists()
