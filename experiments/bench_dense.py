@@ -11,6 +11,10 @@ A variant is ``NAME=KEY=VALUE,KEY=VALUE`` over ``conf/reconstruct/default.yaml``
 ``images/`` of the run directory and writes ``--out/<name>/dense.ply``; run it on an idle machine
 (one variant at a time, all cores) and quote the table it prints.
 
+``--cover K [K ...]`` only counts, for each K, the views ``reconstruct.dense.reference_views`` keeps
+when every sparse point needs K reference views (``reference_views_per_point=K``; no dense
+matching): whether a flight is redundant enough for the cover to save depth maps at all.
+
 ``--true-poses`` replaces the aligned model's camera poses with the simulation's true ones
 (``images/cameras.json``) before dense matching: the difference to a run without it is the part of
 the cloud's error that the SfM cameras cause, the rest is the dense stage's own.
@@ -65,6 +69,26 @@ def true_pose_model(sparse_dir: Path, image_dir: Path, out_dir: Path) -> Path:
     return out_dir
 
 
+def cover_sizes(run_dir: Path, per_point: list[int], min_new_points: int) -> dict:
+    """How many of ``run_dir``'s registered views the reference-view cover keeps for each K of
+    ``per_point``; with the views, sparse points and their mean track length (views per point)."""
+    import pycolmap
+
+    from reconstruct.dense import reference_views, sparse_incidence
+
+    recon = run_dir / "recon"
+    model = pycolmap.Reconstruction(recon / "sparse")
+    names = sorted(model.image(i).name for i in model.reg_image_ids())
+    incidence = sparse_incidence(recon, names)
+    kept = {int(k): int(reference_views(incidence, int(k), min_new_points).sum()) for k in per_point}
+    return {
+        "n_views": len(names),
+        "n_points": int(incidence.shape[1]),
+        "mean_track": incidence.nnz / max(incidence.shape[1], 1),
+        "kept": kept,
+    }
+
+
 def run_variant(
     run_dir: Path, out_dir: Path, overrides: list[str], scene, eval_settings, true_poses: bool = False
 ) -> dict:
@@ -102,14 +126,23 @@ def run_variant(
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dir", type=Path, help="a run directory with recon/sparse and images/")
-    parser.add_argument("--scene", required=True, help="its scene (conf/scene/<name>.yaml)")
-    parser.add_argument("--variant", action="append", required=True, help="NAME=KEY=VALUE,... (repeatable)")
+    parser.add_argument("--scene", help="its scene (conf/scene/<name>.yaml); needed by --variant")
+    parser.add_argument("--variant", action="append", default=[], help="NAME=KEY=VALUE,... (repeatable)")
+    parser.add_argument(
+        "--cover", type=int, nargs="+", metavar="K", help="only count the views the cover keeps for each K"
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "bench_dense")
     parser.add_argument(
         "--true-poses", action="store_true", help="dense-match from the true camera poses, not SfM's"
     )
     args = parser.parse_args(argv)
     try:
+        if not args.variant and not args.cover:
+            raise ValueError("give --variant NAME=... (dense runs) or --cover K ... (view counts)")
+        if args.variant and not args.scene:
+            raise ValueError("--variant needs --scene (the ground truth to score against)")
+        if args.cover and min(args.cover) < 1:
+            raise ValueError(f"--cover: K must be >= 1, got {min(args.cover)}")
         variants = [parse_variant(v) for v in args.variant]
         for needed in ("recon/sparse", "images"):
             if not (args.run_dir / needed).is_dir():
@@ -117,6 +150,20 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if args.cover:
+        from omegaconf import OmegaConf
+
+        min_new = int(
+            OmegaConf.load(ROOT / "conf" / "reconstruct" / "default.yaml").dense.reference_min_new_points
+        )
+        cover = cover_sizes(args.run_dir, args.cover, min_new)
+        print(
+            f"{args.run_dir}: {cover['n_views']} views, {cover['n_points']} sparse points, "
+            f"{cover['mean_track']:.1f} views per point; a view kept adds >= {min_new} under-covered points"
+        )
+        for k, kept in cover["kept"].items():
+            print(f"  K={k}: {kept} of {cover['n_views']} views get a depth map")
+        return 0
     from evaluate.__main__ import load_scene_by_name, load_settings
 
     scene = load_scene_by_name(args.scene)

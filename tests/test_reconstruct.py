@@ -1159,3 +1159,19 @@ def test_bench_dense_knows_the_settings_whose_default_is_null(tmp_path):
     with pytest.raises(ValueError, match=r"unknown dense settings \['num_partner'\]"):
         run_variant(tmp_path, tmp_path / "out", overrides, scene=None, eval_settings=None)
     assert not (tmp_path / "out").exists()
+
+
+def test_bench_dense_cover_counts_the_views_of_a_sparse_model(tmp_path):
+    """pycolmap's synthetic model (30 views, 300 points each seen by every view): its tracks are
+    30 long, so K = 30 keeps every view and K = 1 keeps one view (it sees all 300 points)."""
+    from experiments.bench_dense import cover_sizes
+
+    _, truth = synthetic_dataset(tmp_path)
+    (tmp_path / "run" / "recon" / "sparse").mkdir(parents=True)
+    truth.write(tmp_path / "run" / "recon" / "sparse")
+    tracks = [truth.point3D(p).track.length() for p in truth.point3D_ids()]
+    cover = cover_sizes(tmp_path / "run", [1, 30], min_new_points=1)
+    assert cover["n_views"] == truth.num_reg_images() == 30
+    assert cover["n_points"] == len(tracks)
+    assert cover["mean_track"] == pytest.approx(np.mean(tracks))
+    assert cover["kept"] == {1: 1, 30: 30}
