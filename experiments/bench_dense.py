@@ -144,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.cover and min(args.cover) < 1:
             raise ValueError(f"--cover: K must be >= 1, got {min(args.cover)}")
         variants = [parse_variant(v) for v in args.variant]
-        for needed in ("recon/sparse", "images"):
+        for needed in ("recon/sparse", "images") if args.variant else ("recon/sparse",):
             if not (args.run_dir / needed).is_dir():
                 raise ValueError(f"{args.run_dir}: no {needed}/ (not a finished run directory)")
     except ValueError as exc:
