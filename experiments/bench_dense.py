@@ -76,10 +76,9 @@ def cover_sizes(run_dir: Path, per_point: list[int], min_new_points: int) -> dic
 
     from reconstruct.dense import reference_views, sparse_incidence
 
-    recon = run_dir / "recon"
-    model = pycolmap.Reconstruction(recon / "sparse")
+    model = pycolmap.Reconstruction(run_dir / "recon" / "sparse")
     names = sorted(model.image(i).name for i in model.reg_image_ids())
-    incidence = sparse_incidence(recon, names)
+    incidence = sparse_incidence(model, names)
     kept = {int(k): int(reference_views(incidence, int(k), min_new_points).sum()) for k in per_point}
     return {
         "n_views": len(names),

@@ -142,14 +142,21 @@ def run_queue(
         raise ValueError(f"--revision {revision!r} names no commit of {ROOT}")
     head = found.stdout.strip()
     if commit:
-        records = record_dir(preset, "scene", "planner", 0)
+        records = [
+            os.path.relpath(record_dir(preset, *cell) / name, ROOT)
+            for cell in cells
+            for name in ("metrics.json", "plan.json")
+        ]
         ignored = subprocess.run(
-            ["git", "-C", str(ROOT), "check-ignore", "-q", "--", os.path.relpath(records, ROOT)]
-        )
-        if ignored.returncode == 0:
+            ["git", "-C", str(ROOT), "check-ignore", "--stdin"],
+            input="\n".join(records),
+            capture_output=True,
+            text=True,
+        ).stdout.split()
+        if ignored:
             raise ValueError(
-                f"{os.path.relpath(records.parents[3], ROOT)} is ignored by git (.gitignore): "
-                "its records could not be committed; nothing run"
+                f"{ignored[0]} is ignored by git (.gitignore): "
+                "the queue's records could not be committed; nothing run"
             )
     dirty = (
         revision == "HEAD"

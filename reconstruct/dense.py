@@ -557,11 +557,10 @@ def reference_views(incidence, per_point: int, min_new_points: int) -> np.ndarra
         covered[A.indices[A.indptr[best] : A.indptr[best + 1]]] += 1
 
 
-def sparse_incidence(workspace: Path, names) -> scipy.sparse.csr_matrix:
-    """(len(names), P) 0/1 matrix: which sparse points of the workspace's model each view sees."""
+def sparse_incidence(rec: pycolmap.Reconstruction, names) -> scipy.sparse.csr_matrix:
+    """(len(names), P) 0/1 matrix: which sparse points of the model ``rec`` each view sees."""
     import scipy.sparse
 
-    rec = pycolmap.Reconstruction(Path(workspace) / "sparse")
     by_name = {rec.image(i).name: rec.image(i) for i in rec.reg_image_ids()}
     column = {pid: k for k, pid in enumerate(sorted(rec.point3D_ids()))}
     rows, cols = [], []
@@ -585,7 +584,9 @@ def compute_depth_maps_cpu(workspace: Path, cfg: Mapping) -> dict[str, int]:
     if per_point is not None:
         order = sorted(views)
         keep = reference_views(
-            sparse_incidence(workspace, order), int(per_point), int(cfg.get("reference_min_new_points", 1))
+            sparse_incidence(pycolmap.Reconstruction(workspace / "sparse"), order),
+            int(per_point),
+            int(cfg.get("reference_min_new_points", 1)),
         )
         log.info(
             "dense: %d of %d views get a depth map (%d per sparse point), the rest serve as partners",

@@ -104,3 +104,11 @@ def test_a_queue_whose_records_git_ignores_runs_nothing(tmp_path):
     with pytest.raises(ValueError, match="is ignored by git"):
         run_queue([("tomb", "ours", 0, "default")], "__pycache__", tmp_path)
     assert not any(tmp_path.iterdir())
+
+
+def test_the_ignore_check_looks_at_every_cell_of_the_queue(tmp_path):
+    # The first cell's records could be committed, the second's not (a __pycache__/ folder on its path).
+    cells = [("tomb", "ours", 0, "default"), ("__pycache__", "ours", 0, "default")]
+    with pytest.raises(ValueError, match=r"cells/queue_check/__pycache__/ours/.*is ignored by git"):
+        run_queue(cells, "queue_check", tmp_path)
+    assert not any(tmp_path.iterdir())
