@@ -276,6 +276,27 @@ def to_latex(table: pd.DataFrame, targets_pct=DEFAULT_TARGETS_PCT, at_images=DEF
     return "\n".join(lines) + "\n"
 
 
+def headline_markdown(points: pd.DataFrame) -> str:
+    """The README's headline table: one row per scene and planner, each column's values per budget
+    (fewest images first, ``a / b / c``), means over seeds; ``Seeds`` counts them per budget."""
+
+    def per_budget(group: pd.DataFrame, column: str, scale: float, decimals: int) -> str:
+        return " / ".join(_value_cell(v * scale, decimals) for v in group[column])
+
+    lines = [
+        "| Scene | Planner | Budgets | Seeds | Images | Completeness 5 cm (%) | acc90 (cm) | Flight (min) |",
+        "| :-- | :-- | :-- | :-- | :-- | :-- | :-- | :-- |",
+    ]
+    for (scene, planner), group in points.groupby(["scene", "planner"], sort=False):
+        lines.append(
+            f"| {scene_name(scene)} | {method_name(planner)} | {' / '.join(group['budget'])} "
+            f"| {' / '.join(str(int(n)) for n in group['n'])} | {per_budget(group, 'n_images', 1.0, 0)} "
+            f"| {per_budget(group, COMPLETENESS, 1.0, 1)} | {per_budget(group, ACCURACY, 100.0, 1)} "
+            f"| {per_budget(group, 'flight_time_s', 1.0 / 60.0, 1)} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
 def plot_fronts(points: pd.DataFrame, cost: str = "n_images") -> Figure:
     """Completeness at 5 cm (top) and acc90 (bottom) against ``cost`` (a key of ``COSTS``), one column
     per scene; each planner's budgets joined fewest images first, seeds' spread as error bars, the
@@ -354,6 +375,7 @@ def write_fronts(
         write_text_atomic(out_dir / "fronts.tex", to_latex(table, targets_pct, at_images)),
         write_text_atomic(out_dir / "fronts.csv", table.to_csv(index=False, lineterminator="\n")),
         write_text_atomic(out_dir / "front_points.csv", points.to_csv(index=False, lineterminator="\n")),
+        write_text_atomic(out_dir / "headline.md", headline_markdown(points)),
     ]
     for cost, stem in (("n_images", "fronts_images"), ("flight_time_s", "fronts_flight_time")):
         fig = plot_fronts(points, cost)

@@ -11,6 +11,8 @@ finishes). For each study this writes into ``<out>/<study>/``:
   ``experiments.tables``, over the cells at the default budget (mean and spread over seeds);
 - ``fronts.{md,csv,tex}``, ``front_points.csv``, ``fronts_images.png``, ``fronts_flight_time.png``:
   quality per image over every budget (``experiments.fronts``);
+- ``headline.md``: the README's headline table (``--readme README.md`` splices it in between the
+  README's ``HEADLINE_BEGIN`` and ``HEADLINE_END`` lines, so the README never drifts from the records);
 - ``cells.csv``: every record's ``metrics.json``, one row per cell;
 - ``README.md``: what the cells are, the code revisions and machines they come from, the commands.
 
@@ -40,6 +42,8 @@ log = logging.getLogger(__name__)
 
 ROOT = Path(__file__).resolve().parents[1]
 CELLS = ROOT / "results" / "cells"
+HEADLINE_BEGIN = "<!-- headline table: python -m experiments.results study --readme README.md -->"
+HEADLINE_END = "<!-- end of the headline table -->"
 
 
 def study_runs(cells_dir: Path) -> pd.DataFrame:
@@ -97,7 +101,7 @@ def study_readme(study: str, runs: pd.DataFrame) -> str:
         "",
         "**Files.** `tables/tables.md` (Tables I and II at the default budget), `fronts.md` and",
         "`fronts_images.png` / `fronts_flight_time.png` (quality per image over every budget),",
-        "`cells.csv` (every cell's metrics.json).",
+        "`headline.md` (the top-level README's table, per budget), `cells.csv` (every cell's metrics.json).",
         "",
         "**Run a cell and commit its record** (from a worktree of the study's revision; skips recorded",
         "cells):",
@@ -146,16 +150,40 @@ def write_study(study: str, cells_root: Path = CELLS, out_root: Path = ROOT / "r
     return [out / p.relative_to(build) for p in written]
 
 
+def splice_headline(readme: str, table: str) -> str:
+    """``readme`` with the lines between its ``HEADLINE_BEGIN`` and ``HEADLINE_END`` lines replaced by
+    ``table``.
+
+    Raises:
+        ValueError: the README lacks either marker line, or has them out of order.
+    """
+    lines = readme.splitlines(keepends=True)
+    stripped = [line.strip() for line in lines]
+    try:
+        begin, end = stripped.index(HEADLINE_BEGIN), stripped.index(HEADLINE_END)
+    except ValueError:
+        raise ValueError(f"the README has no '{HEADLINE_BEGIN}' ... '{HEADLINE_END}' lines") from None
+    if end < begin:
+        raise ValueError("the README's headline end marker comes before its begin marker")
+    return "".join(lines[: begin + 1]) + table + "".join(lines[end:])
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m experiments.results", description=__doc__.split("\n")[0])
     parser.add_argument("studies", nargs="*", help="study folders under --cells (default: all of them)")
     parser.add_argument("--cells", type=Path, default=CELLS, help="the records' root (results/cells)")
     parser.add_argument("--out", type=Path, default=ROOT / "results", help="where <study>/ is written")
+    parser.add_argument(
+        "--readme", type=Path, help="splice the (one) study's headline.md into this README's headline block"
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(message)s")
     studies = args.studies or sorted(p.name for p in args.cells.iterdir() if p.is_dir())
     if not studies:
         print(f"error: no study folder under {args.cells}", file=sys.stderr)
+        return 2
+    if args.readme and len(studies) != 1:
+        print(f"error: --readme takes one study, not {len(studies)}", file=sys.stderr)
         return 2
     for study in studies:
         try:
@@ -164,6 +192,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"error: study {study}: {exc}", file=sys.stderr)
             return 2
         print(f"{study}: {len(written)} files in {args.out / study}")
+    if args.readme:
+        headline = args.out / studies[0] / "headline.md"
+        try:
+            readme = splice_headline(args.readme.read_text(), headline.read_text())
+        except (OSError, ValueError) as exc:
+            print(f"error: --readme {args.readme}: {exc}", file=sys.stderr)
+            return 2
+        write_text_atomic(args.readme, readme)
+        print(f"{args.readme}: headline table from {headline}")
     return 0
 
 
