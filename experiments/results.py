@@ -185,6 +185,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.readme and len(studies) != 1:
         print(f"error: --readme takes one study, not {len(studies)}", file=sys.stderr)
         return 2
+    if args.readme:
+        try:  # a README the table cannot go into is refused before the study is rewritten
+            splice_headline(args.readme.read_text(), "")
+        except (OSError, ValueError) as exc:
+            print(f"error: --readme {args.readme}: {exc}", file=sys.stderr)
+            return 2
     for study in studies:
         try:
             written = write_study(study, args.cells, args.out)

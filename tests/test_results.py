@@ -77,6 +77,7 @@ def test_a_readme_without_markers_is_one_line_and_left_as_it_was(tmp_path, capsy
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"error: --readme {readme}: the README has no")
     assert readme.read_text() == "# No markers here\n"
+    assert not (tmp_path / "fixture").exists()  # nothing of the study was written either
 
 
 def test_the_repository_readme_shows_the_committed_study_headline():
