@@ -185,9 +185,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.readme and len(studies) != 1:
         print(f"error: --readme takes one study, not {len(studies)}", file=sys.stderr)
         return 2
+    readme = None
     if args.readme:
         try:  # a README the table cannot go into is refused before the study is rewritten
-            splice_headline(args.readme.read_text(), "")
+            readme = args.readme.read_text()
+            splice_headline(readme, "")
         except (OSError, ValueError) as exc:
             print(f"error: --readme {args.readme}: {exc}", file=sys.stderr)
             return 2
@@ -198,14 +200,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"error: study {study}: {exc}", file=sys.stderr)
             return 2
         print(f"{study}: {len(written)} files in {args.out / study}")
-    if args.readme:
+    if readme is not None:
         headline = args.out / studies[0] / "headline.md"
-        try:
-            readme = splice_headline(args.readme.read_text(), headline.read_text())
-        except (OSError, ValueError) as exc:
-            print(f"error: --readme {args.readme}: {exc}", file=sys.stderr)
-            return 2
-        write_text_atomic(args.readme, readme)
+        write_text_atomic(args.readme, splice_headline(readme, headline.read_text()))
         print(f"{args.readme}: headline table from {headline}")
     return 0
 
