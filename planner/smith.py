@@ -9,15 +9,16 @@
    position is the best total change of the objective mean(max(h_target - h, 0)^2) over the samples
    a camera there could see, the viewing direction being chosen by exhaustive search over a grid of
    directions on the lower hemisphere (``planner.smith_directions``). Positions below the minimum
-   altitude or within the minimum distance of the proxy get a positive penalty. Each round draws
+   altitude, within the minimum distance of the proxy or inside a closed volume of it get a positive
+   penalty (``position_penalty``). Each round draws
    views with probability proportional to their remaining budget (100 steps each), keeps those
    mutually farther apart than ``parallel_separation_m``, removes their observations, takes one
    Nelder-Mead step for all of them at once (vectorised: the steps' trial positions are evaluated
    in batches) and puts their new observations back. A view whose best step gains nothing (or is
    penalised) moves min_distance towards a point 0.9 d_max above the scene centre, is lifted until
-   clear, and its simplex restarted (``restart_positions``). The loop ends when every budget is spent or
-   the objective improved by less than 1e-4 x h_target over the last ``convergence_window`` sweeps
-   (a sweep: as many single-view steps as there are views).
+   clear and outside every closed volume, and its simplex restarted (``restart_positions``). The loop
+   ends when every budget is spent or the objective improved by less than 1e-4 x h_target over the
+   last ``convergence_window`` sweeps (a sweep: as many single-view steps as there are views).
 3. The views are ordered by a travelling-salesman path (``planner.trajectory``).
 """
 
@@ -482,7 +483,8 @@ def restart_positions(
     """Where views that contribute nothing go next (the public code's rule), (K, 3) metres.
 
     Each moves ``min_distance`` towards the point ``0.9 d_max`` above ``scene_centre`` (x, y), then
-    up by ``min_distance`` while it is closer than that to the proxy or below ``min_altitude``.
+    up by ``min_distance`` while ``position_penalty`` is positive there (below ``min_altitude``,
+    closer than ``min_distance`` to the proxy, or inside a closed volume of it).
     """
     positions = np.asarray(positions, dtype=float).reshape(-1, 3)
     target = np.array([scene_centre[0], scene_centre[1], 0.9 * float(d_max)])
@@ -490,11 +492,36 @@ def restart_positions(
     length = np.linalg.norm(step, axis=1, keepdims=True)
     moved = positions + np.where(length > 1e-9, step / np.maximum(length, 1e-9), 0.0) * min_distance
     for _ in range(max_lifts):
-        blocked = (moved[:, 2] < min_altitude) | (model.clearance(moved) < min_distance)
+        blocked = position_penalty(moved, model, min_distance, min_altitude) > 0.0
         if not blocked.any():
             break
         moved[blocked, 2] += min_distance
     return moved
+
+
+def position_penalty(
+    points: np.ndarray, model: VisibilityModel, min_distance: float, min_altitude: float
+) -> np.ndarray:
+    """(N,) penalty of camera positions (N, 3): 0 in the flyable airspace, positive (metres) outside.
+
+    Below ``min_altitude``: the height missing; within ``min_distance`` of the proxy: the distance
+    missing; inside a closed volume of the proxy (``VisibilityModel.enclosed``) and farther than
+    ``min_distance`` from its surface: the depth. The public code penalises a position behind the
+    nearest surface only within min_distance of it (its closest-point search radius), so a position
+    deeper inside a large volume (a nave) went unpenalised and a view could end inside the building,
+    where no drone flies; here the whole interior is outside the airspace.
+    """
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    penalty = np.where(points[:, 2] < min_altitude, min_altitude - points[:, 2], 0.0)
+    ok = penalty == 0.0
+    if ok.any():
+        clearance = model.clearance(points[ok])
+        near = clearance < min_distance
+        deep = np.zeros(len(clearance), bool)
+        if (~near).any():
+            deep[~near] = model.enclosed(points[ok][~near])
+        penalty[ok] = np.where(near, min_distance - clearance, np.where(deep, clearance, 0.0))
+    return penalty
 
 
 def optimise(
@@ -528,11 +555,7 @@ def optimise(
     def evaluate(points: np.ndarray):
         points = np.asarray(points, dtype=float).reshape(-1, 3)
         value, yaw, pitch = np.zeros(len(points)), np.zeros(len(points)), np.full(len(points), -90.0)
-        penalty = np.where(points[:, 2] < min_alt, min_alt - points[:, 2], 0.0)
-        ok = penalty == 0.0
-        if ok.any():
-            clearance = model.clearance(points[ok])
-            penalty[ok] = np.where(clearance < min_dist, min_dist - clearance, 0.0)
+        penalty = position_penalty(points, model, min_dist, min_alt)
         ok = penalty == 0.0
         value[~ok] = penalty[~ok]
         if ok.any():
@@ -568,7 +591,7 @@ def optimise(
         # A view whose best step gains nothing or is penalised contributes nothing where it is. As in
         # the public code (optimize_trajectory.cu), it moves min_distance towards a point 0.9 d_max
         # above the scene centre, is lifted by min_distance until it is clear of the proxy and the
-        # ground, and restarts from a fresh simplex.
+        # ground (and out of any closed volume), and restarts from a fresh simplex.
         useless = val >= 0.0
         if useless.any():
             moved = restart_positions(

@@ -278,3 +278,36 @@ def test_incremental_updates_equal_a_fresh_objective():
     assert objective.objective() == pytest.approx(fresh.objective(), rel=1e-6)
     kept = [set(row[row >= 0].tolist()) for row in objective.ray_view]
     assert kept == [set(row[row >= 0].tolist()) for row in fresh.ray_view]
+
+
+def hall(extents=(40.0, 40.0, 30.0)):
+    """A closed box on the ground, 40 x 40 x 30 m: inside it, most positions are farther than 5 m from it."""
+    box = trimesh.creation.box(extents=extents)
+    box.apply_translation((0.0, 0.0, extents[2] / 2))
+    limits = VisibilityLimits(0, D_MAX, 85)
+    return box, VisibilityModel(box, np.zeros((1, 3)), np.array([[0, 0, 1.0]]), CAMERA, limits)
+
+
+def test_position_penalty_is_the_missing_height_distance_or_depth():
+    _, model = hall()
+    points = np.array(
+        [
+            [0.0, 0.0, 10.0],  # inside, 10 m above the floor, 20 m from the sides, 20 m below the roof
+            [0.0, 0.0, 27.0],  # inside, 3 m below the roof: within min_distance, missing 2 m
+            [0.0, 0.0, 33.0],  # above the roof, 3 m from it: missing 2 m
+            [0.0, 0.0, 36.0],  # above the roof, 6 m from it: flyable
+            [-30.0, 0.0, 3.0],  # in the open, 10 m from the side but 2 m below min_altitude
+        ]
+    )
+    penalty = smith.position_penalty(points, model, 5.0, 5.0)
+    np.testing.assert_allclose(penalty, [10.0, 2.0, 2.0, 0.0, 2.0], atol=1e-5)
+
+
+def test_a_restart_deep_inside_a_closed_volume_is_lifted_out_of_it():
+    # A view 11 m up in the middle of the hall: 11 m from the floor, 19 m from the roof, so clear of
+    # the surface by more than min_distance. It moves 5 m towards (0, 0, 45) and is lifted by 5 m
+    # while inside (16, 21, 26 m) or within 5 m of the roof (31 m): it ends at 36 m, 6 m above it.
+    _, model = hall()
+    moved = smith.restart_positions(np.array([[0.0, 0.0, 11.0]]), np.zeros(3), D_MAX, 5.0, 5.0, model)
+    np.testing.assert_allclose(moved, [[0.0, 0.0, 36.0]], atol=1e-6)
+    assert not model.enclosed(moved)[0]
