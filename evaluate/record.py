@@ -57,6 +57,17 @@ def machine_info() -> dict:
     return {"machine_cpu": model, "machine_cpus": cpus}
 
 
+def git(*args: str, repo: Path | None = None) -> str | None:
+    """The stripped output of ``git -C repo args`` (default: the project); None when it fails or git
+    is missing."""
+    repo = PROJECT_ROOT if repo is None else repo
+    try:
+        done = subprocess.run(["git", "-C", str(repo), *args], capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return done.stdout.strip() if done.returncode == 0 else None
+
+
 @functools.cache
 def code_revision() -> dict:
     """``{"code_commit": <40-hex>, "code_dirty": bool}`` of the project's git checkout.
@@ -66,15 +77,6 @@ def code_revision() -> dict:
     ``code_dirty`` is true when tracked files differ from the commit. Both are None outside a git
     checkout or without git.
     """
-
-    def git(*args: str) -> str | None:
-        try:
-            done = subprocess.run(
-                ["git", "-C", str(PROJECT_ROOT), *args], capture_output=True, text=True, timeout=10
-            )
-        except (OSError, subprocess.TimeoutExpired):
-            return None
-        return done.stdout.strip() if done.returncode == 0 else None
 
     commit = git("rev-parse", "HEAD")
     status = git("status", "--porcelain", "--untracked-files=no") if commit else None

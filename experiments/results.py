@@ -32,6 +32,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from evaluate.record import git
 from experiments.fronts import write_fronts
 from experiments.runs import RunDirectoryError, load_runs, method_sort_key, runs_frame, scene_name
 from experiments.tables import code_provenance, tables_from_runs, write_tables
@@ -69,10 +70,46 @@ def _machines(runs: pd.DataFrame) -> str:
     return "; ".join(f"{label} ({_count(n, 'cell')})" for label, n in counts.items())
 
 
-def _revision(runs: pd.DataFrame) -> str:
-    """The study's one code revision (short), or HEAD when its cells come from several or none."""
-    commits = set(runs.get("code_commit", pd.Series(dtype=object)).dropna())
-    return str(next(iter(commits)))[:7] if len(commits) == 1 else "HEAD"
+def revision_lineage(
+    commits: Sequence[str], repo: Path | None = None
+) -> tuple[str, dict[str, list[str]]] | None:
+    """The revision of ``commits`` that contains all the others, and per other one the files it changes.
+
+    A study whose cells come from two revisions is still one study when the newer revision is the
+    older plus changes to files a reader can judge (a fix to one planner leaves the others' cells
+    what the newer code computes). ``repo``: the project's by default. Returns None when the commits
+    are not known to its git or none of them descends from all the others.
+    """
+    commits = list(dict.fromkeys(commits))
+    for newest in commits:
+        older = [c for c in commits if c != newest]
+        if all(git("merge-base", "--is-ancestor", c, newest, repo=repo) is not None for c in older):
+            diffs = {c: git("diff", "--name-only", c, newest, repo=repo) for c in older}
+            if any(d is None for d in diffs.values()):
+                return None
+            return newest, {c: d.splitlines() for c, d in diffs.items()}
+    return None
+
+
+def _revision_lines(runs: pd.DataFrame) -> tuple[str, list[str]]:
+    """The revision new cells run at (short) and the lines telling how the study's revisions differ.
+
+    One revision: that one. Several: the one containing the others (``revision_lineage``), with the
+    files each older one lacks; HEAD when no such revision is known."""
+    commits = list(dict.fromkeys(runs.get("code_commit", pd.Series(dtype=object)).dropna()))
+    if len(commits) == 1:
+        return str(commits[0])[:7], []
+    lineage = revision_lineage(commits) if commits else None
+    if lineage is None:
+        return "HEAD", []
+    newest, changes = lineage
+    lines = [
+        f"**Between the revisions.** {newest[:10]} is {old[:10]} plus changes to "
+        + (", ".join(f"`{f}`" for f in files) if files else "no file")
+        + f" (`git diff {old[:10]} {newest[:10]}`): cells that run none of them compute the same at both."
+        for old, files in changes.items()
+    ]
+    return newest[:7], lines
 
 
 def study_readme(study: str, runs: pd.DataFrame) -> str:
@@ -85,6 +122,7 @@ def study_readme(study: str, runs: pd.DataFrame) -> str:
         cells=("seed", "size"),
     )
     per_planner = per_planner.loc[sorted(per_planner.index, key=method_sort_key)]
+    revision, between = _revision_lines(runs)
     lines = [
         f"# Study `{study}`",
         "",
@@ -97,6 +135,7 @@ def study_readme(study: str, runs: pd.DataFrame) -> str:
         "",
         code_provenance(runs)[0].strip(),
         "",
+        *(line for text in between for line in (text, "")),
         f"**Machines.** {_machines(runs)}.",
         "",
         "**Files.** `tables/tables.md` (Tables I and II at the default budget), `fronts.md` and",
@@ -108,7 +147,7 @@ def study_readme(study: str, runs: pd.DataFrame) -> str:
         "",
         "```bash",
         "python -m experiments.record --queue tomb/ours/0 tomb/yan/0/low \\",
-        f"    --preset {study} --study study/{study} --revision {_revision(runs)}",
+        f"    --preset {study} --study study/{study} --revision {revision}",
         "```",
         "",
     ]

@@ -2,11 +2,19 @@
 
 from __future__ import annotations
 
+import subprocess
 from pathlib import Path
 
 import pytest
 
-from experiments.results import HEADLINE_BEGIN, HEADLINE_END, main, splice_headline, write_study
+from experiments.results import (
+    HEADLINE_BEGIN,
+    HEADLINE_END,
+    main,
+    revision_lineage,
+    splice_headline,
+    write_study,
+)
 
 FIXTURE = Path(__file__).resolve().parent / "data" / "results_study"
 TEXT_SUFFIXES = {".md", ".csv", ".tex"}
@@ -86,3 +94,28 @@ def test_the_repository_readme_shows_the_committed_study_headline():
     headline = (root / "results" / "study" / "headline.md").read_text()
     readme = (root / "README.md").read_text()
     assert splice_headline(readme, headline) == readme
+
+
+def test_revision_lineage_names_the_newest_revision_and_the_files_it_changes(tmp_path):
+    """Cells of a base commit and of a fix on top of it: the fix contains the base and changes one
+    file; a commit on a side branch descends from neither, so the lineage is unknown."""
+    repo = tmp_path / "repo"
+    git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run(["git", "init", "-q", "-b", "main", str(repo)], check=True)
+
+    def commit(path: str, text: str) -> str:
+        (repo / path).parent.mkdir(parents=True, exist_ok=True)
+        (repo / path).write_text(text)
+        subprocess.run([*git, "add", path], check=True)
+        subprocess.run([*git, "commit", "-qm", path], check=True)
+        return subprocess.run([*git, "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+
+    base = commit("planner/a.py", "x = 1\n")
+    commit("planner/b.py", "y = 1\n")
+    fix = commit("planner/b.py", "y = 2\n")
+    assert revision_lineage([base, fix], repo=repo) == (fix, {base: ["planner/b.py"]})
+    assert revision_lineage([fix, base], repo=repo) == (fix, {base: ["planner/b.py"]})
+    subprocess.run([*git, "checkout", "-q", "-b", "side", base], check=True)
+    side = commit("planner/c.py", "z = 1\n")
+    assert revision_lineage([fix, side], repo=repo) is None
+    assert revision_lineage([base, "0" * 40], repo=repo) is None  # a commit the repository lacks
