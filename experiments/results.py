@@ -14,7 +14,8 @@ finishes). For each study this writes into ``<out>/<study>/``:
 - ``headline.md``: the README's headline table (``--readme README.md`` splices it in between the
   README's ``HEADLINE_BEGIN`` and ``HEADLINE_END`` lines, so the README never drifts from the records);
 - ``cells.csv``: every record's ``metrics.json``, one row per cell;
-- ``README.md``: what the cells are, the code revisions and machines they come from, the commands.
+- ``README.md``: what the cells are, the code revisions and machines they come from (and, from the
+  repository's git history, the files between two revisions), the commands.
 
 Nothing is read from run directories (images, clouds): a fresh clone regenerates the same files.
 """
