@@ -35,6 +35,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
+from scene.plan import read_viewpoints
+
 ROOT = Path(__file__).resolve().parents[1]
 
 # What a plan measures about its own run rather than decides: wall-clock timings, and ray counts
@@ -48,7 +52,7 @@ REL_TOL = 1e-9
 # Runs in the revision's tree (cwd), so every import is that revision's. A ``-c`` string rather than
 # a file of this module: an older revision's tree does not hold this module.
 CHILD = r"""
-import json, sys, tempfile, time
+import json, sys, time
 from pathlib import Path
 import hydra
 from hydra import compose, initialize_config_dir
@@ -171,6 +175,20 @@ def plan_at(revision: str | None, overrides: list[str], out: Path) -> tuple[dict
     return json.loads((out / "plan.json").read_text()), json.loads((out / "replan.json").read_text())
 
 
+def views_line(reference: np.ndarray, other: np.ndarray) -> str:
+    """How two plans' (V, 5) viewpoint rows (x, y, z m; yaw, pitch deg) compare, row by row."""
+    if reference.shape != other.shape:
+        return f"views: {len(reference)} vs {len(other)}"
+    if np.array_equal(reference, other):
+        return "views: identical"
+    moved = np.linalg.norm(reference[:, :3] - other[:, :3], axis=1)
+    turned = np.abs(reference[:, 3:] - other[:, 3:]).max(axis=1)
+    return (
+        f"views: {np.count_nonzero(moved + turned)} of {len(reference)} differ "
+        f"(up to {moved.max():.3f} m, {turned.max():.2f} deg)"
+    )
+
+
 def describe(plan: dict) -> str:
     """``189 views, 1161 m, objective 12.41 -> 0.0137`` (the objective where the planner reports one)."""
     text = f"{plan['n_viewpoints']} views, {plan['flight_length_m']:.0f} m"
@@ -211,7 +229,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     name = f"{metrics['scene']}/{metrics['planner']}/{metrics['budget']}/seed{metrics['seed']}"
     code = str(metrics.get("code_commit", "?"))[:10]
     print(f"{name}: the record (code {code}): {describe(recorded)}", flush=True)
-    plans: dict[str, dict] = {}
+    plans: dict[str, tuple[dict, np.ndarray]] = {}
     agree = True
     for revision in args.revision:
         label = revision or "working tree"
@@ -230,11 +248,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"  {label}: {describe(plan)}, {cpu}; proxy {points} points ({whose})", flush=True)
         print(f"    against the record: {differences_line(to_record)}", flush=True)
         agree &= not (own_proxy and to_record)
-        for earlier, earlier_plan in plans.items():
+        views = read_viewpoints(out / "viewpoints.csv")[0]
+        for earlier, (earlier_plan, earlier_views) in plans.items():
             between = compare_plans(earlier_plan, plan)
-            print(f"    against {earlier}: {differences_line(between)}", flush=True)
-            agree &= not between
-        plans[label] = plan
+            print(
+                f"    against {earlier}: {differences_line(between)}; {views_line(earlier_views, views)}",
+                flush=True,
+            )
+            agree &= not between and np.array_equal(earlier_views, views)
+        plans[label] = plan, views
         print(f"    plan: {out}", flush=True)
     return 0 if agree else 1
 

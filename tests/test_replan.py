@@ -1,5 +1,6 @@
 """experiments.replan: which fields of two plan records differ, and the cell a record names."""
 
+import numpy as np
 import pytest
 
 from experiments.replan import (
@@ -9,6 +10,7 @@ from experiments.replan import (
     differences_line,
     proxy_is_records,
     same_value,
+    views_line,
 )
 
 RECORD = {
@@ -95,3 +97,15 @@ def test_cell_overrides_compose_the_recorded_cell():
         cell_overrides({k: v for k, v in metrics.items() if k != "budget"})
     with pytest.raises(ValueError, match="scene.path"):
         cell_overrides(metrics | {"scene_config": "mesh"})
+
+
+def test_views_line_counts_moved_and_turned_views():
+    views = np.array(
+        [[0.0, 0.0, 30.0, 90.0, -45.0], [10.0, 0.0, 30.0, 0.0, -90.0], [20.0, 5.0, 30.0, 0.0, -90.0]]
+    )
+    assert views_line(views, views.copy()) == "views: identical"
+    other = views.copy()
+    other[1, :3] += [3.0, 4.0, 0.0]  # 5 m
+    other[2, 3] += 1.5
+    assert views_line(views, other) == "views: 2 of 3 differ (up to 5.000 m, 1.50 deg)"
+    assert views_line(views, views[:2]) == "views: 3 vs 2"
