@@ -107,7 +107,8 @@ def _revision_lines(runs: pd.DataFrame) -> tuple[str, list[str]]:
     lines = [
         f"**Between the revisions.** {newest[:10]} is {old[:10]} plus changes to "
         + (", ".join(f"`{f}`" for f in files) if files else "no file")
-        + f" (`git diff {old[:10]} {newest[:10]}`): cells that run none of them compute the same at both."
+        + f" (`git diff {old[:10]} {newest[:10]}`): cells that run none of them compute the same at both;"
+        + f" `python -m experiments.replan <record> --revision {old[:7]} {newest[:7]}` checks a cell's plan."
         for old, files in changes.items()
     ]
     return newest[:7], lines
