@@ -226,7 +226,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (OSError, ValueError) as exc:
         print(f"error: {args.record}: {exc}", file=sys.stderr)
         return 2
-    name = f"{metrics['scene']}/{metrics['planner']}/{metrics['budget']}/seed{metrics['seed']}"
+    scene = metrics.get("scene", metrics["scene_config"])
+    name = f"{scene}/{metrics['planner']}/{metrics['budget']}/seed{metrics['seed']}"
     code = str(metrics.get("code_commit", "?"))[:10]
     print(f"{name}: the record (code {code}): {describe(recorded)}", flush=True)
     plans: dict[str, tuple[dict, np.ndarray]] = {}

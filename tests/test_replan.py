@@ -8,6 +8,7 @@ from experiments.replan import (
     cell_overrides,
     compare_plans,
     differences_line,
+    main,
     proxy_is_records,
     same_value,
     views_line,
@@ -109,3 +110,9 @@ def test_views_line_counts_moved_and_turned_views():
     other[2, 3] += 1.5
     assert views_line(views, other) == "views: 2 of 3 differ (up to 5.000 m, 1.50 deg)"
     assert views_line(views, views[:2]) == "views: 3 vs 2"
+
+
+def test_a_folder_without_a_record_is_refused_in_one_line(tmp_path, capsys):
+    assert main([str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"error: {tmp_path}:") and "metrics.json" in err and "\n" not in err
