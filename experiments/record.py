@@ -25,7 +25,8 @@ import os
 import subprocess
 import sys
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -118,6 +119,27 @@ def parse_cell(text: str) -> tuple[str, str, int, str]:
     return parts[0], parts[1], int(parts[2]), budget
 
 
+@contextmanager
+def revision_worktree(revision: str, prefix: str = "uavplan_tree_") -> Iterator[Path]:
+    """A detached worktree of ``revision`` in a temporary folder, removed after the block.
+
+    Raises:
+        ValueError: git cannot check ``revision`` out (it names no commit)."""
+    with tempfile.TemporaryDirectory(prefix=prefix) as tmp:
+        tree = Path(tmp) / "tree"
+        added = subprocess.run(
+            ["git", "-C", str(ROOT), "worktree", "add", "-q", "--detach", str(tree), revision],
+            capture_output=True,
+            text=True,
+        )
+        if added.returncode != 0:
+            raise ValueError(f"--revision {revision!r}: {added.stderr.strip()}")
+        try:
+            yield tree
+        finally:
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False)
+
+
 def run_queue(
     cells: Sequence[tuple[str, str, int, str]],
     preset: str,
@@ -173,44 +195,37 @@ def run_queue(
             flush=True,
         )
     failed = 0
-    with tempfile.TemporaryDirectory(prefix="uavplan_queue_") as tmp:
-        tree = Path(tmp) / "tree"
-        subprocess.run(
-            ["git", "-C", str(ROOT), "worktree", "add", "-q", "--detach", str(tree), head], check=True
-        )
-        try:
-            env = dict(os.environ, UAVPLAN_CACHE=str(ROOT / "cache"), PYTHONPATH=str(tree))
-            for scene, planner, seed, budget in cells:
-                name = f"{scene}/{planner}/{seed}" + ("" if budget == DEFAULT_LEVEL else f"/{budget}")
-                recorded = record_dir(preset, scene, planner, seed, budget) / "metrics.json"
-                if recorded.is_file() and not force:
-                    print(f"{name}: recorded already (--force runs it again)", flush=True)
-                    continue
-                run_dir = (Path(study) / cell_path(scene, planner, seed, budget)).resolve()
-                command = [
-                    sys.executable,
-                    "run.py",
-                    f"scene={scene}",
-                    f"planner={planner}",
-                    f"seed={seed}",
-                    f"budget={budget}",
-                    f"hydra.run.dir={run_dir}",
-                    *overrides,
-                ]
-                print(f"{name}: running at {head} into {run_dir}", flush=True)
-                code = subprocess.run(command, cwd=tree, env=env).returncode
-                if not (run_dir / "metrics.json").is_file():
-                    print(f"{name}: exit {code} and no metrics.json: nothing recorded", flush=True)
-                    failed += 1
-                    continue
-                dest, metrics = record_cell(run_dir, preset)
-                failed += metrics.get("status", "ok") != "ok"
-                line = summary_line(metrics) + f" (code {head})"
-                print(line, flush=True)
-                if commit:
-                    commit_record(dest, line)
-        finally:
-            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False)
+    with revision_worktree(head, prefix="uavplan_queue_") as tree:
+        env = dict(os.environ, UAVPLAN_CACHE=str(ROOT / "cache"), PYTHONPATH=str(tree))
+        for scene, planner, seed, budget in cells:
+            name = f"{scene}/{planner}/{seed}" + ("" if budget == DEFAULT_LEVEL else f"/{budget}")
+            recorded = record_dir(preset, scene, planner, seed, budget) / "metrics.json"
+            if recorded.is_file() and not force:
+                print(f"{name}: recorded already (--force runs it again)", flush=True)
+                continue
+            run_dir = (Path(study) / cell_path(scene, planner, seed, budget)).resolve()
+            command = [
+                sys.executable,
+                "run.py",
+                f"scene={scene}",
+                f"planner={planner}",
+                f"seed={seed}",
+                f"budget={budget}",
+                f"hydra.run.dir={run_dir}",
+                *overrides,
+            ]
+            print(f"{name}: running at {head} into {run_dir}", flush=True)
+            code = subprocess.run(command, cwd=tree, env=env).returncode
+            if not (run_dir / "metrics.json").is_file():
+                print(f"{name}: exit {code} and no metrics.json: nothing recorded", flush=True)
+                failed += 1
+                continue
+            dest, metrics = record_cell(run_dir, preset)
+            failed += metrics.get("status", "ok") != "ok"
+            line = summary_line(metrics) + f" (code {head})"
+            print(line, flush=True)
+            if commit:
+                commit_record(dest, line)
     return failed
 
 

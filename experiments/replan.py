@@ -30,13 +30,14 @@ import math
 import os
 import subprocess
 import sys
-import tempfile
 from collections.abc import Sequence
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from experiments.record import revision_worktree
 from scene.plan import read_viewpoints
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -152,26 +153,11 @@ def plan_at(revision: str | None, overrides: list[str], out: Path) -> tuple[dict
     Raises:
         ValueError: ``revision`` names no commit. RuntimeError: the child failed."""
     env = dict(os.environ, UAVPLAN_CACHE=os.environ.get("UAVPLAN_CACHE", str(ROOT / "cache")))
-    with tempfile.TemporaryDirectory(prefix="uavplan_replan_") as tmp:
-        tree = ROOT
-        if revision is not None:
-            tree = Path(tmp) / "tree"
-            added = subprocess.run(
-                ["git", "-C", str(ROOT), "worktree", "add", "-q", "--detach", str(tree), revision],
-                capture_output=True,
-                text=True,
-            )
-            if added.returncode != 0:
-                raise ValueError(f"--revision {revision!r}: {added.stderr.strip()}")
-        try:
-            env["PYTHONPATH"] = str(tree)
-            child = [sys.executable, "-c", CHILD, json.dumps(overrides), str(out.resolve())]
-            if subprocess.run(child, cwd=tree, env=env).returncode != 0:
-                raise RuntimeError(f"re-planning at {revision or 'the working tree'} failed (see above)")
-        finally:
-            if revision is not None:
-                remove = ["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)]
-                subprocess.run(remove, check=False)
+    with revision_worktree(revision, prefix="uavplan_replan_") if revision else nullcontext(ROOT) as tree:
+        env["PYTHONPATH"] = str(tree)
+        child = [sys.executable, "-c", CHILD, json.dumps(overrides), str(out.resolve())]
+        if subprocess.run(child, cwd=tree, env=env).returncode != 0:
+            raise RuntimeError(f"re-planning at {revision or 'the working tree'} failed (see above)")
     return json.loads((out / "plan.json").read_text()), json.loads((out / "replan.json").read_text())
 
 
