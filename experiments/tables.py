@@ -530,6 +530,25 @@ def _numeric_specs(runs: pd.DataFrame) -> list[MetricSpec]:
 UNRECORDED_REVISION = "unrecorded"
 
 
+def _cell_names(runs: pd.DataFrame, name_seeds: bool) -> str:
+    """"Tomb Ours seeds 0-2, Church Smith et al. seeds 0/2, Church Ours seed 1": the cells of ``runs``
+    in the order they come, seeds merged per scene and method (a run of consecutive seeds as a range)."""
+    names: dict[str, list[int]] = {}
+    for scene, method, seed in zip(runs["scene"], runs["method"], runs["seed"], strict=True):
+        names.setdefault(f"{scene_name(scene)} {method}", []).append(int(seed))
+    if not name_seeds:
+        return ", ".join(names)
+
+    def seeds_text(seeds: list[int]) -> str:
+        seeds = sorted(set(seeds))
+        if len(seeds) == 1:
+            return f"seed {seeds[0]}"
+        consecutive = seeds == list(range(seeds[0], seeds[-1] + 1))
+        return f"seeds {seeds[0]}-{seeds[-1]}" if consecutive else "seeds " + "/".join(map(str, seeds))
+
+    return ", ".join(f"{name} {seeds_text(seeds)}" for name, seeds in names.items())
+
+
 def code_provenance(runs: pd.DataFrame) -> tuple[str, bool]:
     """A Markdown paragraph naming the code revisions of ``runs`` (``code_commit``, ``code_dirty``
     of metrics.json) and the cells of each, and whether the code behind the cells may differ: the
@@ -542,10 +561,6 @@ def code_provenance(runs: pd.DataFrame) -> tuple[str, bool]:
     )
     labels = labels.where(dirty.map(lambda d: d is not True), labels + " with uncommitted changes")
     several_seeds = runs["seed"].nunique() > 1
-    cells = [
-        f"{scene_name(scene)} {method}" + (f" seed {int(seed)}" if several_seeds else "")
-        for scene, method, seed in zip(runs["scene"], runs["method"], runs["seed"], strict=True)
-    ]
     uncertain = labels.nunique() > 1 or not known.all() or (dirty == True).any()  # noqa: E712
     if labels.nunique() == 1:
         text = (
@@ -554,9 +569,21 @@ def code_provenance(runs: pd.DataFrame) -> tuple[str, bool]:
             else f"**Code.** The run: revision {labels.iloc[0]}."
         )
     else:
+        groups = labels.groupby(labels, sort=False).groups
+        # A revision holding most cells comes first, named by the cells it lacks: a long study's
+        # paragraph stays readable.
+        most = max(groups, key=lambda label: len(groups[label]))
+        most = most if len(groups[most]) * 2 > len(runs) else None
+        order = sorted(groups, key=lambda label: label != most)
         parts = [
-            f"{label} ({len(index)}: {', '.join(cells[i] for i in runs.index.get_indexer(index))})"
-            for label, index in labels.groupby(labels, sort=False).groups.items()
+            f"{label} ({len(groups[label])}: "
+            + (
+                "every cell not named here"
+                if label == most
+                else _cell_names(runs.loc[groups[label]], several_seeds)
+            )
+            + ")"
+            for label in order
         ]
         text = f"**Code.** The runs come from {labels.nunique()} revisions: " + "; ".join(parts) + "."
     if uncertain:

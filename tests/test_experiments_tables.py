@@ -306,6 +306,31 @@ def test_tables_name_the_code_revisions_of_the_runs(tmp_path, caplog):
     )
     assert "The runs come from 3 revisions" in caplog.text
 
+    # A revision holding most cells comes first and is named by the cells it lacks; seeds merge.
+    study = tmp_path / "study"
+    for seed in (0, 1, 2):
+        write_run(study, "tomb", "ours", seed, acc90_m=0.1, code_commit="a" * 40, code_dirty=False)
+        write_run(study, "tomb", "lawnmower", seed, acc90_m=0.1, code_commit="a" * 40, code_dirty=False)
+    for seed in (0, 2):
+        write_run(study, "church", "smith", seed, acc90_m=0.1, code_commit="b" * 40, code_dirty=False)
+    write_run(study, "church", "ours", 1, acc90_m=0.1, code_commit="b" * 40, code_dirty=False)
+    text, uncertain = tables.code_provenance(tables.build_tables([study])["runs"])
+    assert uncertain
+    assert text.startswith(
+        "**Code.** The runs come from 2 revisions: aaaaaaaaaa (6: every cell not named here); "
+        "bbbbbbbbbb (3: Church "
+    )
+    assert "Church Smith et al. seeds 0/2" in text and "Church Ours seed 1" in text
+    every = tables._cell_names(tables.build_tables([study])["runs"], True).split(", ")
+    assert sorted(every) == sorted(
+        [
+            "Tomb Ours seeds 0-2",
+            "Tomb Lawnmower seeds 0-2",
+            "Church Smith et al. seeds 0/2",
+            "Church Ours seed 1",
+        ]
+    )
+
 
 def test_bad_input_is_a_clear_error(tmp_path, capsys):
     empty = tmp_path / "empty"
