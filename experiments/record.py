@@ -1,7 +1,7 @@
 """Cell records in the repository, and a queue that runs cells one at a time and commits each record.
 
 A run directory (images, models, clouds: gigabytes) stays on the machine that ran it; its record,
-``metrics.json`` and ``plan/plan.json`` (kilobytes), is what the tables and figures are rebuilt from
+``metrics.json``, ``plan/plan.json`` and ``.hydra/overrides.yaml`` (kilobytes), is what the tables and figures are rebuilt from
 (``experiments.tables`` and ``experiments.figures`` read record folders like run directories). It
 lives in ``results/cells/<preset>/<scene>/<planner>/<budget>/seed<k>/`` (budget: ``planner.budget``).
 
@@ -38,7 +38,13 @@ from planner.budget import DEFAULT_LEVEL, level_rank  # noqa: E402
 from scene.io import write_text_atomic  # noqa: E402
 
 RECORDS = ROOT / "results" / "cells"
-RECORD_FILES = {"metrics.json": "metrics.json", "plan.json": "plan/plan.json"}
+# The Hydra overrides travel with the record: a `--set` (a memory budget, a switch) changes how a cell
+# ran, and the run directory that holds them does not survive a move to a new machine.
+RECORD_FILES = {
+    "metrics.json": "metrics.json",
+    "plan.json": "plan/plan.json",
+    "overrides.yaml": ".hydra/overrides.yaml",
+}
 
 
 def cell_path(scene: str, planner: str, seed: int, budget: str = DEFAULT_LEVEL) -> Path:
