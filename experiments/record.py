@@ -1,9 +1,10 @@
 """Cell records in the repository, and a queue that runs cells one at a time and commits each record.
 
 A run directory (images, models, clouds: gigabytes) stays on the machine that ran it; its record,
-``metrics.json``, ``plan/plan.json`` and ``.hydra/overrides.yaml`` (kilobytes), is what the tables and figures are rebuilt from
-(``experiments.tables`` and ``experiments.figures`` read record folders like run directories). It
-lives in ``results/cells/<preset>/<scene>/<planner>/<budget>/seed<k>/`` (budget: ``planner.budget``).
+``metrics.json``, ``plan/plan.json`` and ``.hydra/overrides.yaml`` (kilobytes), is what the tables
+and figures are rebuilt from (``experiments.tables`` and ``experiments.figures`` read record folders
+like run directories). It lives in ``results/cells/<preset>/<scene>/<planner>/<budget>/seed<k>/``
+(budget: ``planner.budget``).
 
     python -m experiments.record study/default_v4/tomb/yan/seed0 --preset default [--commit]
     python -m experiments.record --queue tomb/yan/0 church/ours/1 tomb/ours/0/high --preset default \\
