@@ -90,10 +90,10 @@ def planner_params(cfg: DictConfig) -> DictConfig:
 
 def run_cell(cfg: DictConfig, run_dir: Path, record: dict) -> None:
     """Chain the stages for one (scene, planner, seed) cell; fill ``record`` as they complete."""
+    from drone.model import DroneSettings, flight_summary
     from evaluate.run import evaluate_reconstruction
     from evaluate.settings import EvaluationSettings
     from experiments.observations import predicted_coverage
-    from mission.flight_time import DroneSettings, flight_summary
     from mission.validate import validate_plan
     from reconstruct.pipeline import reconstruct_flight
     from render import render_flight

@@ -5,7 +5,7 @@ What is read (every file optional; a value whose source is missing is recorded a
 - ``plan/viewpoints.csv``: ``n_viewpoints`` and ``flight_length_m`` (the polyline through the
   viewpoints in flight order, recomputed here so it cannot disagree with the flight flown).
 - ``plan/plan.json``: ``plan_time_s`` from ``plan_time_s``, else ``timings_s.total``, else ``time_s``;
-  ``flight_time_s`` and ``n_batteries`` (``mission.flight_time``), computed from the viewpoints with
+  ``flight_time_s`` and ``n_batteries`` (``drone.model``), computed from the viewpoints with
   the run's drone settings for plans written before they were recorded.
 - ``images/cameras.json`` (the renderer's record): ``n_images`` (its ``images`` list) and
   ``render_time_s``.
@@ -24,6 +24,7 @@ import logging
 from collections.abc import Mapping
 from pathlib import Path
 
+from scene.cameras_file import CAMERAS_FILE, read_cameras
 from scene.plan import polyline_length, read_viewpoints
 
 log = logging.getLogger(__name__)
@@ -71,10 +72,9 @@ def collect_cost_metrics(run_dir: str | Path) -> dict:
     out["flight_time_s"] = _number(plan, "flight_time_s", run_dir / "plan" / "plan.json")
     out["n_batteries"] = _number(plan, "n_batteries", run_dir / "plan" / "plan.json")
     if out["flight_time_s"] is None and viewpoints is not None:
-        from mission.export import run_settings
-        from mission.flight_time import flight_summary
+        from drone.model import DroneSettings, flight_summary
 
-        flight = flight_summary(viewpoints, run_settings(run_dir)[1])
+        flight = flight_summary(viewpoints, DroneSettings.of_run(run_dir))
         out["flight_time_s"], out["n_batteries"] = flight["flight_time_s"], flight["n_batteries"]
     timings = plan.get("timings_s") if isinstance(plan.get("timings_s"), Mapping) else {}
     out["plan_time_s"] = _number(plan, "plan_time_s", run_dir / "plan" / "plan.json")
@@ -85,11 +85,10 @@ def collect_cost_metrics(run_dir: str | Path) -> dict:
     if out["flight_length_m"] is None:
         out["flight_length_m"] = _number(plan, "flight_length_m", run_dir / "plan" / "plan.json")
 
-    cameras_path = run_dir / "images" / "cameras.json"
-    cameras = _read_json(cameras_path)
-    if isinstance(cameras.get("images"), list):
-        out["n_images"] = len(cameras["images"])
-    out["render_time_s"] = _number(cameras, "render_time_s", cameras_path)
+    if (run_dir / "images" / CAMERAS_FILE).is_file():
+        cameras = read_cameras(run_dir / "images")
+        out["n_images"] = len(cameras)
+        out["render_time_s"] = _number(cameras.extra, "render_time_s", run_dir / "images" / CAMERAS_FILE)
 
     recon_path = run_dir / "recon" / "recon.json"
     recon = _read_json(recon_path)

@@ -87,10 +87,10 @@ def main(argv=None) -> int:
     from hydra.utils import get_method
     from omegaconf import OmegaConf
 
+    from drone.model import DroneSettings, flight_summary
     from evaluate.settings import EvaluationSettings
     from experiments.exploration import load_proxy
     from experiments.observations import predicted_coverage
-    from mission.flight_time import DroneSettings, flight_summary
     from reconstruct.proxy import degraded_ground_truth
     from run import planner_setup
     from scene.camera import Intrinsics

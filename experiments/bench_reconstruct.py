@@ -52,11 +52,11 @@ def render_base_flight(out_dir: Path, n_images: int) -> Path:
     from planner.lawnmower import plan_exploration
     from render.flight import render_flight
     from scene.camera import Intrinsics
+    from scene.cameras_file import CAMERAS_FILE, read_cameras
     from scene.procedural.tomb import build_tomb
 
-    if (out_dir / "cameras.json").is_file():
-        if len(json.loads((out_dir / "cameras.json").read_text())["images"]) >= n_images:
-            return out_dir
+    if (out_dir / CAMERAS_FILE).is_file() and len(read_cameras(out_dir)) >= n_images:
+        return out_dir
     base = OmegaConf.load(ROOT / "conf" / "config.yaml")
     intrinsics = Intrinsics(**base.camera)
     scene = build_tomb({}, cache_dir=ROOT / "cache" / "scenes")
@@ -78,16 +78,25 @@ def render_base_flight(out_dir: Path, n_images: int) -> Path:
 
 def subset_flight(base: Path, out_dir: Path, n_images: int) -> Path:
     """A flight of the first ``n_images`` images of ``base`` (symbolic links + a cut cameras.json)."""
-    record = json.loads((base / "cameras.json").read_text())
-    if len(record["images"]) < n_images:
-        raise SystemExit(f"{base} has {len(record['images'])} images, fewer than {n_images}")
+    from scene.cameras_file import read_cameras, write_cameras
+
+    cameras = read_cameras(base)
+    if len(cameras) < n_images:
+        raise SystemExit(f"{base} has {len(cameras)} images, fewer than {n_images}")
     out_dir.mkdir(parents=True, exist_ok=True)
-    record["images"] = record["images"][:n_images]
-    for image in record["images"]:
-        link = out_dir / image["name"]
+    names = cameras.names[:n_images]
+    for name in names:
+        link = out_dir / name
         if not link.exists():
-            link.symlink_to((base / image["name"]).resolve())
-    (out_dir / "cameras.json").write_text(json.dumps(record))
+            link.symlink_to((base / name).resolve())
+    write_cameras(
+        out_dir,
+        names,
+        cameras.viewpoints[:n_images],
+        cameras.intrinsics,
+        cameras.kinds[:n_images],
+        cameras.extra,
+    )
     return out_dir
 
 

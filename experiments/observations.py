@@ -19,7 +19,6 @@ Writes ``observations.md`` (one table), ``observations.csv`` (one row per run an
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 from collections.abc import Sequence
@@ -43,12 +42,13 @@ from experiments.runs import (
 )
 from planner.sampling import sample_surface
 from planner.visibility import VisibilityLimits, VisibilityModel
+from scene.cameras_file import CAMERAS_FILE, read_cameras
 from scene.io import write_text_atomic
 
 log = logging.getLogger(__name__)
 
 GT_REGION_FILE = Path("eval") / "gt_region.ply"
-CAMERAS_FILE = Path("images") / "cameras.json"
+IMAGES_DIR = Path("images")
 SPARSE_DIR = Path("recon") / "sparse"
 # "Seen at all": any distance, up to the planners' facing limit (conf/planner/*: max_incidence_deg).
 SEEN_MAX_INCIDENCE_DEG = 80.0
@@ -167,15 +167,13 @@ def registered_views(run_dir: Path) -> tuple[np.ndarray, int, bool]:
     Raises:
         RunDirectoryError: no ``images/cameras.json`` or a malformed one.
     """
-    path = run_dir / CAMERAS_FILE
     try:
-        images = json.loads(path.read_text())["images"]
-        names = [image["name"] for image in images]
-        viewpoints = np.array([image["viewpoint"] for image in images], dtype=float).reshape(-1, 5)
+        names, viewpoints, _, _ = read_cameras(run_dir / IMAGES_DIR)
     except FileNotFoundError as exc:
+        path = run_dir / IMAGES_DIR / CAMERAS_FILE
         raise RunDirectoryError(f"{path}: missing (the run rendered no flight)") from exc
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-        raise RunDirectoryError(f"{path}: not a flight record ({exc})") from exc
+    except ValueError as exc:
+        raise RunDirectoryError(f"not a flight record: {exc}") from exc
     registered = registered_image_names(run_dir / SPARSE_DIR)
     if registered is None:
         return viewpoints, len(names), False

@@ -58,7 +58,7 @@ from pathlib import Path
 import hydra
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
-from mission.flight_time import DroneSettings, flight_summary
+from drone.model import DroneSettings, flight_summary
 from mission.validate import validate_plan
 from run import obtain_proxy, planner_setup
 from scene.camera import Intrinsics

@@ -101,7 +101,7 @@ TABLE_I = (
 )
 TABLE_II = (
     MetricSpec("n_images", "Number of images", "Number of Images", 0, thousands=True),
-    # mission/flight_time.py with conf/drone: all flights, battery swaps excluded
+    # drone/model.py with conf/drone: all flights, battery swaps excluded
     MetricSpec(
         "flight_time_s", "Flight time (minutes)", r"\makecell{Flight\\time (minutes)}", 1, scale=1.0 / 60.0
     ),

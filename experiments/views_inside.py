@@ -25,7 +25,7 @@ def main(argv: list[str] | None = None) -> int:
     import hydra
     from hydra import compose, initialize_config_dir
 
-    from mission.flight_time import DroneSettings
+    from drone.model import DroneSettings
     from mission.validate import validate_plan
     from run import obtain_proxy, planner_setup
     from scene.camera import Intrinsics

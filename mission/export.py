@@ -13,8 +13,8 @@ from types import ModuleType
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from drone.model import DroneSettings
 from mission import litchi, qgc, wpml
-from mission.flight_time import DroneSettings
 from mission.geo import MissionError, SurveyOrigin
 from mission.model import Mission, build_mission
 from scene.io import write_atomic
@@ -26,22 +26,18 @@ CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 def default_settings() -> tuple[SurveyOrigin, DroneSettings]:
     """The survey origin and drone of ``conf/config.yaml`` and ``conf/drone/default.yaml``."""
     origin = OmegaConf.load(CONF_DIR / "config.yaml").survey.origin
-    drone = OmegaConf.load(CONF_DIR / "drone" / "default.yaml")
-    return SurveyOrigin.from_config(_plain(origin)), DroneSettings.from_config(_plain(drone))
+    return SurveyOrigin.from_config(_plain(origin)), DroneSettings.default()
 
 
 def run_settings(run_dir: Path) -> tuple[SurveyOrigin, DroneSettings]:
     """The run's own ``survey.origin`` and ``drone`` (``.hydra/config.yaml``), else the defaults."""
-    origin, drone = default_settings()
+    origin = default_settings()[0]
     config_path = run_dir / ".hydra" / "config.yaml"
     if config_path.is_file():
-        cfg = OmegaConf.load(config_path)
-        node = OmegaConf.select(cfg, "survey.origin")
+        node = OmegaConf.select(OmegaConf.load(config_path), "survey.origin")
         if node is not None:
             origin = SurveyOrigin.from_config(_plain(node))
-        if OmegaConf.select(cfg, "drone") is not None:
-            drone = DroneSettings.from_config(_plain(cfg.drone))
-    return origin, drone
+    return origin, DroneSettings.of_run(run_dir)
 
 
 def _plain(node) -> dict:

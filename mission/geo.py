@@ -14,10 +14,12 @@ from dataclasses import dataclass
 import numpy as np
 import pymap3d
 
+from drone.model import DroneError
+
 HEIGHT_REFERENCES = ("amsl", "ellipsoid")
 
 
-class MissionError(ValueError):
+class MissionError(DroneError):
     """A plan or setting that no drone can fly (the message names the waypoint or the setting)."""
 
 

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mission.flight_time import DroneSettings, Flight, default_takeoff, split_flights
+from drone.model import DroneSettings, Flight, default_takeoff, split_flights
 from mission.geo import MissionError, SurveyOrigin
 from scene.camera import VIEWPOINT_COLUMNS
 

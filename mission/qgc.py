@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 
-from mission.flight_time import Flight
+from drone.model import Flight
 from mission.model import Mission
 
 MAV_CMD_NAV_WAYPOINT = 16

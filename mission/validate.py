@@ -12,7 +12,7 @@ import numpy as np
 import open3d as o3d
 import trimesh
 
-from mission.flight_time import DroneSettings
+from drone.model import DroneSettings
 from scene.enclosure import enclosed_positions, raycasting_scene
 from scene.plan import Plan, PlanningError
 

@@ -12,7 +12,7 @@ import io
 import xml.etree.ElementTree as ET
 import zipfile
 
-from mission.flight_time import Flight
+from drone.model import Flight
 from mission.model import Mission
 
 KML_NS = "http://www.opengis.net/kml/2.2"

@@ -7,7 +7,7 @@ acted on it. A per-minute price is not scale-free: R counts well-observed sample
 while taking as long to fly, and one price per minute prunes the large scene harder (the cathedral
 lost 22 % of its views and 5 points of completeness at the price that cost the tomb 5 %:
 results/ours_plus.md). Priced per share of the scene's own flight, 1 % of the flight buys the same
-share of R on every scene. The flight is timed by the missions' model (``mission.flight_time``:
+share of R on every scene. The flight is timed by the missions' model (``drone.model``:
 accelerate-cruise-decelerate legs, yaw and gimbal at each stop, a photo) along a visiting order.
 The order used while optimising is a greedy nearest-neighbour path from the take-off point, fixed
 for one CMA-ES or culling pass: the final order (LKH) is shorter, but the cost only has to rank
@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from mission.flight_time import DroneSettings, legs_time_s, stops_time_s
+from drone.model import DroneSettings, legs_time_s, stops_time_s
 
 
 def greedy_order(positions: np.ndarray, start: np.ndarray) -> np.ndarray:

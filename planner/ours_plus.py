@@ -20,7 +20,7 @@ import numpy as np
 import trimesh
 from threadpoolctl import threadpool_limits
 
-from mission.flight_time import DroneSettings
+from drone.model import DroneSettings
 from planner.base import plain_params
 from planner.evidence import EvidenceSettings, proxy_evidence, sample_weights
 from planner.flight_time_term import FlightTimeTerm

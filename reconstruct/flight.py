@@ -1,17 +1,11 @@
 """A rendered flight as the reconstruction sees it: images, the known camera, simulated GNSS.
 
-The renderer writes ``IMAGE_DIR/cameras.json``::
-
-    {"intrinsics": {"width", "height", "hfov_deg", "focal_px", "cx", "cy"},
-     "images": [{"name", "viewpoint": [x, y, z, yaw_deg, pitch_deg], "kind",
-                 "cam_from_world": {"rotation": 3x3, "translation": 3}}, ...], ...}
-
-The true poses are used only to simulate GNSS positions and to score the recovered poses.
+The flight's images and poses come from ``IMAGE_DIR/cameras.json`` (``scene.cameras_file``). The
+true poses are used only to simulate GNSS positions and to score the recovered poses.
 """
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,8 +14,7 @@ import numpy as np
 
 from reconstruct.errors import ReconstructionError
 from scene.camera import Intrinsics
-
-CAMERAS_FILE = "cameras.json"
+from scene.cameras_file import CAMERAS_FILE, CamerasFileError, read_cameras
 
 
 @dataclass(frozen=True)
@@ -62,40 +55,18 @@ def read_flight(image_dir: str | Path) -> Flight:
             f"{path}: missing (the renderer writes it beside the images)", {"stage": "input"}
         )
     try:
-        record = json.loads(path.read_text())
-        intr = record["intrinsics"]
-        intrinsics = Intrinsics(int(intr["width"]), int(intr["height"]), float(intr["hfov_deg"]))
-        images = record["images"]
-        names = tuple(str(im["name"]) for im in images)
-        rotations = np.array([im["cam_from_world"]["rotation"] for im in images], dtype=float)
-        translations = np.array([im["cam_from_world"]["translation"] for im in images], dtype=float)
-        kinds = tuple(str(im.get("kind", "")) for im in images)
-    except (KeyError, TypeError, ValueError, json.JSONDecodeError) as exc:
-        raise ReconstructionError(
-            f"{path}: malformed ({type(exc).__name__}: {exc})", {"stage": "input"}
-        ) from exc
-    if "focal_px" in intr and not math.isclose(float(intr["focal_px"]), intrinsics.focal_px, rel_tol=1e-6):
-        raise ReconstructionError(
-            f"{path}: focal_px {intr['focal_px']} disagrees with hfov_deg {intrinsics.hfov_deg} "
-            f"(expected {intrinsics.focal_px:.6f})",
-            {"stage": "input"},
-        )
-    n = len(names)
-    if n == 0:
-        rotations, translations = np.zeros((0, 3, 3)), np.zeros((0, 3))
-    if rotations.shape != (n, 3, 3) or translations.shape != (n, 3):
-        raise ReconstructionError(
-            f"{path}: cam_from_world must be 3x3 rotations and 3-vectors", {"stage": "input"}
-        )
-    if len(set(names)) != n:
-        raise ReconstructionError(f"{path}: duplicate image names", {"stage": "input"})
-    missing = [name for name in names if not (image_dir / name).is_file()]
+        cameras = read_cameras(image_dir)
+    except CamerasFileError as exc:
+        raise ReconstructionError(str(exc), {"stage": "input"}) from exc
+    missing = [name for name in cameras.names if not (image_dir / name).is_file()]
     if missing:
         raise ReconstructionError(
             f"{image_dir}: {len(missing)} image(s) listed in {CAMERAS_FILE} are missing, e.g. {missing[0]}",
-            {"stage": "input", "n_images": n},
+            {"stage": "input", "n_images": len(cameras)},
         )
-    return Flight(image_dir, intrinsics, names, rotations.reshape(n, 3, 3), translations.reshape(n, 3), kinds)
+    return Flight(
+        image_dir, cameras.intrinsics, cameras.names, cameras.rotations, cameras.translations, cameras.kinds
+    )
 
 
 def simulate_gnss(positions: np.ndarray, sigma_m: float, seed: int) -> np.ndarray:

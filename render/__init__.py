@@ -5,17 +5,14 @@ Importing this package does not import MuJoCo: the OpenGL back-end must be chose
 """
 
 from render.backend import BackendError, select_backend
-from render.flight import CAMERAS_FILE, CameraRecord, RenderResult, image_name, read_cameras, render_flight
+from render.flight import RenderResult, image_name, render_flight
 from render.renderer import SceneRenderer
 
 __all__ = [
-    "CAMERAS_FILE",
     "BackendError",
-    "CameraRecord",
     "RenderResult",
     "SceneRenderer",
     "image_name",
-    "read_cameras",
     "render_flight",
     "select_backend",
 ]

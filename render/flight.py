@@ -1,19 +1,10 @@
-"""Render a flight (a list of viewpoints) to PNGs plus ``cameras.json``, and read such a folder back.
+"""Render a flight (a list of viewpoints) to PNGs plus ``cameras.json`` (``scene.cameras_file``).
 
-``OUT_DIR/cameras.json`` is written last, so a folder without it is an incomplete render::
-
-    {"scene": NAME, "intrinsics": {"width", "height", "hfov_deg", "focal_px", "cx", "cy"},
-     "backend": "egl" | "osmesa", "render_time_s": S, "build_time_s": S, "images_per_s": R,
-     "images": [{"name": "000000.png", "viewpoint": [x, y, z, yaw_deg, pitch_deg], "kind": K,
-                 "cam_from_world": {"rotation": 3x3, "translation": 3}}, ...]}
-
-``cam_from_world`` is COLMAP's (``x_cam = R @ x_world + t``, OpenCV camera axes), pixels follow
-COLMAP's convention (the centre of the top-left pixel is (0.5, 0.5)).
+``OUT_DIR/cameras.json`` is written last, so a folder without it is an incomplete render.
 """
 
 from __future__ import annotations
 
-import json
 import re
 import time
 from collections import deque
@@ -26,11 +17,10 @@ import numpy as np
 from tqdm import tqdm
 
 from scene.base import Scene
-from scene.camera import Intrinsics, cam_from_world, validate_viewpoint_array
-from scene.io import write_atomic, write_json_atomic
+from scene.camera import Intrinsics, validate_viewpoint_array
+from scene.cameras_file import CAMERAS_FILE, DEFAULT_KIND, write_cameras
+from scene.io import write_atomic
 
-CAMERAS_FILE = "cameras.json"
-DEFAULT_KIND = "view"
 _IMAGE_NAME = re.compile(r"^\d{6}\.png$")
 
 
@@ -160,64 +150,12 @@ def render_flight(
         render_cpu_s = time.process_time() - cpu_start
         backend = renderer.backend
 
-    rotations, translations = cam_from_world(vps)
-    record = {
+    header = {
         "scene": scene.name,
-        "intrinsics": intrinsics.as_dict(),
         "backend": backend,
         "render_time_s": render_time_s,
         "build_time_s": build_time_s,
         "images_per_s": len(vps) / render_time_s if render_time_s > 0 else None,
-        "images": [
-            {
-                "name": name,
-                "viewpoint": row.tolist(),
-                "kind": kind,
-                "cam_from_world": {"rotation": rot.tolist(), "translation": t.tolist()},
-            }
-            for name, row, kind, rot, t in zip(names, vps, kinds, rotations, translations, strict=True)
-        ],
     }
-    write_json_atomic(out_dir / CAMERAS_FILE, record)
+    write_cameras(out_dir, names, vps, intrinsics, kinds, header)
     return RenderResult(out_dir, tuple(names), backend, render_time_s, build_time_s, render_cpu_s)
-
-
-@dataclass(frozen=True)
-class CameraRecord:
-    """The content of a rendered folder's ``cameras.json``."""
-
-    names: tuple[str, ...]
-    viewpoints: np.ndarray  # (V, 5)
-    intrinsics: Intrinsics
-    kinds: tuple[str, ...]
-    backend: str
-
-    def __iter__(self):
-        # Unpacks as (names, viewpoints, intrinsics, kinds).
-        return iter((self.names, self.viewpoints, self.intrinsics, self.kinds))
-
-
-def read_cameras(image_dir: str | Path) -> CameraRecord:
-    """Read ``image_dir/cameras.json``: names, (V, 5) viewpoints, intrinsics, kinds (and back-end).
-
-    Raises:
-        FileNotFoundError: no ``cameras.json`` (the folder is missing or its render incomplete).
-        ValueError: the file is malformed (named in the message).
-    """
-    path = Path(image_dir) / CAMERAS_FILE
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: missing (the render is incomplete or never ran)")
-    try:
-        record = json.loads(path.read_text())
-        intr = record["intrinsics"]
-        intrinsics = Intrinsics(int(intr["width"]), int(intr["height"]), float(intr["hfov_deg"]))
-        images = record["images"]
-        names = tuple(str(im["name"]) for im in images)
-        viewpoints = np.array([im["viewpoint"] for im in images], dtype=float).reshape(len(images), 5)
-        kinds = tuple(str(im.get("kind", DEFAULT_KIND)) for im in images)
-        backend = str(record.get("backend", ""))
-    except (KeyError, TypeError, ValueError, json.JSONDecodeError) as err:
-        raise ValueError(f"{path}: malformed ({type(err).__name__}: {err})") from err
-    return CameraRecord(
-        names, validate_viewpoint_array(viewpoints) if len(names) else viewpoints, intrinsics, kinds, backend
-    )

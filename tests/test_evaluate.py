@@ -33,6 +33,7 @@ from evaluate.settings import EvaluationSettings, threshold_key
 from evaluate.visualise import VIEW_NAMES, error_colors, save_view_png, splat, view_pixels
 from scene.base import Box
 from scene.camera import Intrinsics
+from scene.cameras_file import write_cameras
 from scene.plan import Plan, write_plan
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -419,9 +420,13 @@ def test_metrics_record_the_code_revision(tmp_path, monkeypatch):
 def test_collect_cost_metrics_from_a_run_directory(tmp_path):
     viewpoints = np.array([[0, 0, 10, 0, -90], [30, 0, 10, 0, -90], [30, 40, 10, 0, -90]], float)
     write_plan(Plan(viewpoints, ["grid"] * 3, "lawnmower", {"timings_s": {"total": 2.5}}), tmp_path / "plan")
-    (tmp_path / "images").mkdir()
-    (tmp_path / "images" / "cameras.json").write_text(
-        json.dumps({"render_time_s": 1.5, "images": [{}, {}, {}]})
+    write_cameras(
+        tmp_path / "images",
+        ["a.png", "b.png", "c.png"],
+        viewpoints,
+        Intrinsics(64, 48, 60.0),
+        ["grid"] * 3,
+        {"render_time_s": 1.5},
     )
     (tmp_path / "recon").mkdir()
     recon = {

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 import trimesh
@@ -12,6 +10,7 @@ from evaluate.settings import EvaluationSettings
 from experiments import observations
 from experiments.observations import ObservationCriteria, observation_shares
 from scene.camera import Intrinsics
+from scene.cameras_file import write_cameras
 from tests.experiments_fixtures import write_run
 
 INTRINSICS = Intrinsics(1024, 768, 60.0)
@@ -75,10 +74,9 @@ def write_wall_run(root, planner, views, names=None):
     run_dir = write_run(root, "wallscene", planner, 0, acc90_m=0.1)
     (run_dir / "eval").mkdir()
     wall().export(run_dir / "eval" / "gt_region.ply")
-    (run_dir / "images").mkdir()
     names = names or [f"{i:06d}.png" for i in range(len(views))]
-    images = [{"name": n, "viewpoint": v} for n, v in zip(names, views, strict=True)]
-    (run_dir / "images" / "cameras.json").write_text(json.dumps({"images": images}))
+    (run_dir / "images").mkdir()
+    write_cameras(run_dir / "images", names, views, INTRINSICS, ["view"] * len(names))
     gsd = TARGET_DISTANCE_M / INTRINSICS.focal_px
     (run_dir / ".hydra").mkdir()
     camera = "camera:\n  width: 1024\n  height: 768\n  hfov_deg: 60.0\n"

@@ -11,9 +11,9 @@ import pyproj
 import pytest
 from fastkml import kml
 
+from drone.model import DroneError, leg_time_s, split_flights
 from mission.__main__ import main as mission_main
 from mission.export import default_settings, export_mission
-from mission.flight_time import leg_time_s, split_flights
 from mission.geo import MissionError, SurveyOrigin
 from mission.litchi import HEADER as LITCHI_HEADER
 from scene.plan import Plan, write_plan
@@ -132,7 +132,7 @@ def test_a_long_plan_takes_several_batteries_each_within_its_endurance():
     assert all(f.time_s <= 240.0 for f in flights)
     # one waypoint farther than a battery can reach is named
     far = np.array([[5000.0, 0.0, 20.0, 0.0, -30.0]])
-    with pytest.raises(MissionError, match="waypoint 0: a flight to it and back takes"):
+    with pytest.raises(DroneError, match="waypoint 0: a flight to it and back takes"):
         split_flights(far, np.zeros(3), d)
 
 

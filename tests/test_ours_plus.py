@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from mission.flight_time import DroneSettings, split_flights
+from drone.model import DroneSettings, split_flights
 from planner import ours, ours_plus
 from planner.evidence import EvidenceSettings, evidence_signals, sample_weights
 from planner.flight_time_term import FlightTimeTerm, greedy_order

@@ -77,7 +77,7 @@ def test_every_cell_scores_finite_numbers(smoke_sweep):
         for surface in ("ground", "roofs", "walls"):
             key = f"predicted_well_observed_{surface}_pct"
             assert 0.0 <= r[key] <= 100.0 and forecast[key] == r[key], key
-        # The flight-time model of the plan as flown (mission.flight_time), in plan.json and
+        # The flight-time model of the plan as flown (drone.model), in plan.json and
         # metrics.json alike; the plan exports to a mission with the same flights.
         plan_record = json.loads((run_dir / "plan" / "plan.json").read_text())
         assert r["flight_time_s"] == plan_record["flight_time_s"] > r["n_images"] * 1.5  # >= a photo each

@@ -148,7 +148,7 @@ def test_marker_projection_matches_colmap(backend, tmp_path):
     proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-2000:]
 
-    from render import read_cameras
+    from scene.cameras_file import read_cameras
 
     record = read_cameras(tmp_path)
     names, viewpoints, intrinsics, kinds = record
@@ -373,7 +373,8 @@ def test_render_flight_refuses_bad_viewpoints_before_writing(tmp_path, lit_scene
 def test_render_flight_writes_images_and_record(tmp_path, lit_scene):
     import cv2
 
-    from render import read_cameras, render_flight
+    from render import render_flight
+    from scene.cameras_file import read_cameras
 
     out = tmp_path / "images"
     out.mkdir()

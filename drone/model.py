@@ -21,10 +21,17 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
+from pathlib import Path
 
 import numpy as np
 
-from mission.geo import MissionError
+# The drone every run and export takes unless its config says otherwise.
+DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "conf" / "drone" / "default.yaml"
+
+
+class DroneError(ValueError):
+    """A drone setting out of range, or a plan the drone cannot fly (one line naming it)."""
+
 
 
 @dataclass(frozen=True)
@@ -68,26 +75,26 @@ class DroneSettings:
         for name in positive:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-                raise MissionError(f"drone.{name} must be a positive number, got {value!r}")
+                raise DroneError(f"drone.{name} must be a positive number, got {value!r}")
         for name in ("photo_time_s", "takeoff_s", "landing_s", "min_height_m", "min_clearance_m"):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
-                raise MissionError(f"drone.{name} must be a number >= 0, got {value!r}")
+                raise DroneError(f"drone.{name} must be a number >= 0, got {value!r}")
         if not 0.0 <= self.reserve_fraction < 1.0:
-            raise MissionError(f"drone.reserve_fraction must lie in [0, 1), got {self.reserve_fraction}")
+            raise DroneError(f"drone.reserve_fraction must lie in [0, 1), got {self.reserve_fraction}")
         if not self.gimbal_pitch_min_deg < self.gimbal_pitch_max_deg:
-            raise MissionError(
+            raise DroneError(
                 f"drone.gimbal_pitch_min_deg ({self.gimbal_pitch_min_deg}) must be below "
                 f"gimbal_pitch_max_deg ({self.gimbal_pitch_max_deg})"
             )
         if self.min_height_m >= self.ceiling_m:
-            raise MissionError(f"drone.min_height_m ({self.min_height_m}) must be below ceiling_m")
+            raise DroneError(f"drone.min_height_m ({self.min_height_m}) must be below ceiling_m")
         if int(self.max_waypoints_per_file) < 1:
-            raise MissionError(
+            raise DroneError(
                 f"drone.max_waypoints_per_file must be >= 1, got {self.max_waypoints_per_file}"
             )
         if self.qgc_gimbal_command not in ("gimbal_manager", "mount_control"):
-            raise MissionError(
+            raise DroneError(
                 "drone.qgc_gimbal_command must be gimbal_manager or mount_control, "
                 f"got {self.qgc_gimbal_command!r}"
             )
@@ -99,15 +106,33 @@ class DroneSettings:
         unknown = sorted(set(node) - names)
         missing = sorted(names - set(node))
         if unknown or missing:
-            raise MissionError(f"drone settings: unknown {unknown}, missing {missing}")
+            raise DroneError(f"drone settings: unknown {unknown}, missing {missing}")
         values = dict(node)
         if values["takeoff_xy"] is not None:
             xy = tuple(float(v) for v in values["takeoff_xy"])
             if len(xy) != 2 or not all(math.isfinite(v) for v in xy):
-                raise MissionError(f"drone.takeoff_xy must be null or [x, y] in metres, got {xy}")
+                raise DroneError(f"drone.takeoff_xy must be null or [x, y] in metres, got {xy}")
             values["takeoff_xy"] = xy
         values["max_waypoints_per_file"] = int(values["max_waypoints_per_file"])
         return cls(**values)
+
+    @classmethod
+    def default(cls) -> DroneSettings:
+        """The drone of ``conf/drone/default.yaml``."""
+        from omegaconf import OmegaConf
+
+        return cls.from_config(OmegaConf.to_container(OmegaConf.load(DEFAULT_CONFIG), resolve=True))
+
+    @classmethod
+    def of_run(cls, run_dir: str | Path) -> DroneSettings:
+        """The drone a run directory was planned with (its ``.hydra/config.yaml``), else the default."""
+        from omegaconf import OmegaConf
+
+        config_path = Path(run_dir) / ".hydra" / "config.yaml"
+        node = OmegaConf.select(OmegaConf.load(config_path), "drone") if config_path.is_file() else None
+        if node is None:
+            return cls.default()
+        return cls.from_config(OmegaConf.to_container(node, resolve=True))
 
     @property
     def usable_flight_s(self) -> float:
@@ -173,7 +198,7 @@ def split_flights(
         max_waypoints: waypoints per flight (default ``drone.max_waypoints_per_file``).
 
     Raises:
-        MissionError: one waypoint alone does not fit a battery (its index is named).
+        DroneError: one waypoint alone does not fit a battery (its index is named).
     """
     cap = int(max_waypoints or drone.max_waypoints_per_file)
     positions = viewpoints[:, :3]
@@ -197,7 +222,7 @@ def split_flights(
         totals = fixed + to_wp[start] + stop_sum + leg_sum + from_wp[idx]
         over = np.flatnonzero(totals > drone.usable_flight_s)
         if len(over) and over[0] == 0:
-            raise MissionError(
+            raise DroneError(
                 f"waypoint {start}: a flight to it and back takes {totals[0]:.0f} s, more than one "
                 f"battery gives ({drone.usable_flight_s:.0f} s: drone.endurance_s x (1 - reserve_fraction))"
             )
