@@ -10,6 +10,8 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 
+from scene.config import plain
+
 MESH_INPUTS = ("vertices", "surface")
 
 
@@ -149,7 +151,7 @@ class EvaluationSettings:
             return cls()
         if isinstance(cfg, cls):
             return cfg
-        values = _plain(cfg)
+        values = plain(cfg)
         if not isinstance(values, dict):
             raise ValueError(f"evaluate config must be a mapping, got {type(cfg).__name__}")
         known = {f.name for f in fields(cls)}
@@ -188,16 +190,3 @@ def _compact(value: float) -> str:
 def _positive(name: str, value) -> None:
     if value is None or not math.isfinite(float(value)) or float(value) <= 0:
         raise ValueError(f"{name} must be positive, got {value!r}")
-
-
-def _plain(cfg):
-    try:
-        from omegaconf import DictConfig, ListConfig, OmegaConf
-
-        if isinstance(cfg, DictConfig | ListConfig):
-            return OmegaConf.to_container(cfg, resolve=True)
-    except ImportError:  # pragma: no cover - omegaconf ships with hydra, a pinned dependency
-        pass
-    if isinstance(cfg, Mapping):
-        return {k: _plain(v) for k, v in cfg.items()}
-    return cfg

@@ -24,16 +24,12 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+import pandas as pd
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:  # run as a script from anywhere
-    sys.path.insert(0, str(ROOT))
-
-from experiments.fronts import ACCURACY, COMPLETENESS, figure_legend  # noqa: E402
-from experiments.runs import (  # noqa: E402
+from experiments.fronts import ACCURACY, COMPLETENESS, figure_legend
+from experiments.runs import (
     RunDirectoryError,
     load_runs,
     method_name,
@@ -43,8 +39,10 @@ from experiments.runs import (  # noqa: E402
     scene_name,
     scene_sort_key,
 )
-from planner.budget import DEFAULT_LEVEL  # noqa: E402
-from scene.io import write_atomic, write_text_atomic  # noqa: E402
+from planner.budget import DEFAULT_LEVEL
+from scene.io import write_atomic, write_text_atomic
+
+ROOT = Path(__file__).resolve().parents[1]
 
 log = logging.getLogger(__name__)
 

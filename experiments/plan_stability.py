@@ -34,8 +34,8 @@ from scipy.spatial import cKDTree
 
 from evaluate.metrics import SURFACE_CLASSES
 from evaluate.settings import EvaluationSettings
-from experiments.observations import ObservationCriteria, observation_shares
 from experiments.runs import method_name
+from pipeline.forecast import ObservationCriteria, observation_shares
 from scene.io import write_text_atomic
 
 log = logging.getLogger(__name__)
@@ -79,7 +79,7 @@ def plan_rows(
     perturbed copies (``perturbation`` 0..repeats-1)."""
     import hydra
 
-    from run import planner_params
+    from pipeline.settings import planner_params
     from scene.camera import Intrinsics
 
     cfg = compose_config([*overrides, f"planner={planner}"])

@@ -30,13 +30,11 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:  # run as a script from anywhere
-    sys.path.insert(0, str(ROOT))
+from experiments.runs import RunDirectoryError, read_metrics
+from planner.budget import DEFAULT_LEVEL, level_rank
+from scene.io import write_text_atomic
 
-from experiments.runs import RunDirectoryError, read_metrics  # noqa: E402
-from planner.budget import DEFAULT_LEVEL, level_rank  # noqa: E402
-from scene.io import write_text_atomic  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 RECORDS = ROOT / "results" / "cells"
 # The Hydra overrides travel with the record: a `--set` (a memory budget, a switch) changes how a cell

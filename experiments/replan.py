@@ -58,12 +58,26 @@ from pathlib import Path
 import hydra
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
-from drone.model import DroneSettings, flight_summary
 from mission.validate import validate_plan
-from run import obtain_proxy, planner_setup
 from scene.camera import Intrinsics
 from scene.plan import write_plan
 from scene.registry import load_scene
+
+try:  # the pipeline package and the drone model
+    from drone.model import DroneSettings, flight_summary
+    from pipeline.proxy import proxy_stage
+    from pipeline.settings import planner_setup
+
+    def obtain_proxy(scene, intrinsics, cfg, record):
+        proxy, fields = proxy_stage(
+            scene, intrinsics, scene_cfg=cfg.scene, camera_cfg=cfg.camera, exploration_cfg=cfg.exploration,
+            render_cfg=cfg.render, reconstruct_cfg=cfg.reconstruct, cache_dir=cfg.cache_dir, seed=cfg.seed,
+        )
+        record.update(fields)
+        return proxy
+except ImportError:  # a revision from before them: run.py held the stages, mission/ the drone
+    from mission.flight_time import DroneSettings, flight_summary
+    from run import obtain_proxy, planner_setup
 
 overrides, out = json.loads(sys.argv[1]), Path(sys.argv[2])
 with initialize_config_dir(config_dir=str(Path("conf").resolve()), version_base=None):
@@ -120,7 +134,7 @@ def compare_plans(reference: dict, other: dict, rel_tol: float = REL_TOL) -> lis
 
 def proxy_is_records(metrics: dict, proxy_record: dict) -> bool:
     """Whether the re-plan's proxy has the record's reconstruction statistics (``PROXY_IDENTITY``);
-    ``proxy_record`` holds them under the record's names (``run.obtain_proxy`` prefixes them)."""
+    ``proxy_record`` holds them under the record's names (``pipeline.proxy.proxy_stage`` prefixes them)."""
     return all(
         metrics.get(key) is not None and metrics.get(key) == proxy_record.get(key) for key in PROXY_IDENTITY
     )

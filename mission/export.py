@@ -11,12 +11,13 @@ from pathlib import Path
 from types import ModuleType
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import OmegaConf
 
 from drone.model import DroneSettings
 from mission import litchi, qgc, wpml
 from mission.geo import MissionError, SurveyOrigin
 from mission.model import Mission, build_mission
+from scene.config import plain
 from scene.io import write_atomic
 
 FORMATS: dict[str, ModuleType] = {"qgc": qgc, "litchi": litchi, "wpml": wpml}
@@ -26,7 +27,7 @@ CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 def default_settings() -> tuple[SurveyOrigin, DroneSettings]:
     """The survey origin and drone of ``conf/config.yaml`` and ``conf/drone/default.yaml``."""
     origin = OmegaConf.load(CONF_DIR / "config.yaml").survey.origin
-    return SurveyOrigin.from_config(_plain(origin)), DroneSettings.default()
+    return SurveyOrigin.from_config(plain(origin)), DroneSettings.default()
 
 
 def run_settings(run_dir: Path) -> tuple[SurveyOrigin, DroneSettings]:
@@ -36,12 +37,8 @@ def run_settings(run_dir: Path) -> tuple[SurveyOrigin, DroneSettings]:
     if config_path.is_file():
         node = OmegaConf.select(OmegaConf.load(config_path), "survey.origin")
         if node is not None:
-            origin = SurveyOrigin.from_config(_plain(node))
+            origin = SurveyOrigin.from_config(plain(node))
     return origin, DroneSettings.of_run(run_dir)
-
-
-def _plain(node) -> dict:
-    return OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else dict(node)
 
 
 def output_paths(out: Path, n_files: int) -> list[Path]:

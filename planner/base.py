@@ -3,7 +3,10 @@
 Planner contract: a module ``planner/<name>.py`` exposes
 ``plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: int) -> Plan``;
 ``conf/planner/<name>.yaml`` names it with ``_target_`` and carries its parameters. ``Plan`` and its
-files live in ``scene.plan`` (shared by every stage).
+files live in ``scene.plan`` (shared by every stage). A module may also expose
+``check_params(params: Mapping, intrinsics: Intrinsics) -> None``, which raises (``ValueError`` or
+``PlanningError``, naming the setting) on a bad parameter; the pipeline calls it before the scene
+loads (``pipeline.settings``), so a bad setting costs no exploration.
 """
 
 from __future__ import annotations
@@ -11,21 +14,15 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 from planner.budget import CONFIG_KEYS
+from scene.config import plain
 from scene.plan import Plan, PlanningError
 
 __all__ = ["Plan", "PlanningError", "merge_params", "plain_params"]
 
 
 def plain_params(params: Mapping | None) -> dict:
-    """A planner's parameters as plain containers: a Hydra DictConfig resolved and converted, any
-    other mapping copied at the top level, None as {}."""
-    try:
-        from omegaconf import DictConfig, OmegaConf
-    except ImportError:  # pragma: no cover - omegaconf ships with hydra
-        return dict(params or {})
-    if isinstance(params, DictConfig):
-        return OmegaConf.to_container(params, resolve=True)
-    return dict(params or {})
+    """A planner's parameters as plain containers (``scene.config.plain``), None as {}."""
+    return plain(params) if params is not None else {}
 
 
 def merge_params(planner: str, defaults: Mapping, params: Mapping | None) -> dict:

@@ -31,8 +31,8 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from planner.photo_evidence import PhotoSettings, PhotoViews, photo_consistency
-from planner.sampling import PROXY_CLOUD_KEY, PROXY_VIEWS_KEY
 from scene.plan import PlanningError
+from scene.proxy_mesh import PROXY_CLOUD_KEY, PROXY_VIEWS_KEY
 
 
 @dataclass(frozen=True)

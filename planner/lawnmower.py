@@ -65,6 +65,19 @@ def _merged(params: Mapping | None) -> dict:
     return merged
 
 
+def check_params(params: Mapping | None, intrinsics: Intrinsics) -> None:
+    """Refuse a bad setting before any work (the planner contract, ``planner.base``): the ones that
+    need no structure; the altitude against the structure is checked when planning."""
+    del intrinsics
+    p = _merged(params)
+    if str(p["mode"]) not in MODES:
+        raise ValueError(f"lawnmower: mode must be one of {MODES}, got {p['mode']!r}")
+    _check_overlap("front_overlap", p["front_overlap"])
+    _check_overlap("side_overlap", p["side_overlap"])
+    if str(p["flight_direction"]) not in ("auto", "x", "y"):
+        raise ValueError(f"lawnmower: flight_direction must be auto, x or y, got {p['flight_direction']!r}")
+
+
 def _check_overlap(name: str, value) -> float:
     value = float(value)
     if not (0.0 <= value < 1.0) or not math.isfinite(value):

@@ -16,10 +16,9 @@ Parameters: ``conf/planner/ours.yaml`` (``DEFAULTS`` below mirrors it).
 from __future__ import annotations
 
 import copy
-import math
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -31,19 +30,19 @@ from planner.base import plain_params
 from planner.budget import CONFIG_KEYS
 from planner.candidates import (
     CandidateSettings,
-    FlightLimits,
     detail_group,
     select_spread,
     side_pool,
     valid_candidates,
 )
-from planner.cmaes_refine import CmaSettings, refine_clusters
+from planner.cmaes_refine import refine_clusters
 from planner.culling import cull
-from planner.heuristics import HeuristicParams, global_score
+from planner.heuristics import global_score
 from planner.objective import ObjectiveState
+from planner.ours_settings import OursSettings
 from planner.sampling import sample_surface, validate_proxy
 from planner.trajectory import flight_length, order_viewpoints
-from planner.visibility import VisibilityLimits, VisibilityModel
+from planner.visibility import VisibilityModel
 from scene.camera import Intrinsics
 from scene.plan import Plan, PlanningError
 
@@ -88,44 +87,9 @@ def resolve_params(params: Mapping | None) -> dict:
     return out
 
 
-def _positive(cfg: dict, *path: str) -> float:
-    value = cfg
-    for p in path:
-        value = value[p]
-    if value is None or not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-        raise PlanningError(f"planner ours: {'.'.join(path)} must be a positive number, got {value!r}")
-    return float(value)
-
-
-def _match_settings(h: Mapping) -> dict:
-    return {
-        "matchable_overlap": bool(h["matchable_overlap"]),
-        "match_angle_full_deg": float(h["match_angle_full_deg"]),
-        "match_angle_zero_deg": float(h["match_angle_zero_deg"]),
-        "match_scale_full": float(h["match_scale_full"]),
-        "match_scale_zero": float(h["match_scale_zero"]),
-    }
-
-
-def detail_params(h: Mapping, d_t: float) -> HeuristicParams:
-    """The detail pass's ``HeuristicParams`` from the ``heuristics`` settings and the target
-    distance ``d_t`` (m): the one place the YAML's factors become metres."""
-    tol = float(h["distance_tolerance"])
-    return HeuristicParams(
-        k_count=int(h["k_count"]),
-        target_lo_m=d_t * (1.0 - tol),
-        target_hi_m=d_t * (1.0 + tol),
-        d_margin_m=float(h["d_margin_factor"]) * d_t,
-        r_min=float(h["r_min"]),
-        r_max=float(h["r_max"]),
-        top_k=int(h["top_k"]),
-        tau_edge=float(h["tau_edge"]),
-        eps=float(h["eps"]),
-        point_score=str(h["point_score"]),
-        frontal_full_deg=float(h["frontal_full_deg"]),
-        frontal_cone_deg=float(h["frontal_cone_deg"]),
-        **_match_settings(h),
-    )
+def check_params(params: Mapping | None, intrinsics: Intrinsics) -> None:
+    """Refuse a bad setting before any work (the planner contract, ``planner.base``)."""
+    OursSettings.build(resolve_params(params), intrinsics)
 
 
 class _Recorder:
@@ -290,115 +254,32 @@ def plan_with(
 ) -> Plan:
     """``plan`` with resolved parameters ``cfg`` and the ``ext`` additions (call under one BLAS thread)."""
     t_start = time.perf_counter()
+    settings = OursSettings.build(cfg, intrinsics)
     validate_proxy(proxy)
-    h, c, cv = cfg["heuristics"], cfg["candidates"], cfg["coverage"]
-    gsd = _positive(cfg, "target_gsd_m")
-    d_t = intrinsics.distance_for_gsd(gsd)
-    limits = FlightLimits(**cfg["limits"])
-    for key in ("k_count", "top_k"):
-        if int(h[key]) < 1:
-            raise PlanningError(f"planner ours: heuristics.{key} must be >= 1, got {h[key]}")
-    tol = float(h["distance_tolerance"])
-    if not 0.0 <= tol < 1.0:
-        raise PlanningError(f"planner ours: heuristics.distance_tolerance must lie in [0, 1), got {tol}")
-    d_margin = _positive(cfg, "heuristics", "d_margin_factor") * d_t
-    if limits.min_clearance_m >= d_t * (1.0 + tol):
-        raise PlanningError(
-            f"impossible limits: limits.min_clearance_m = {limits.min_clearance_m} m is not below the "
-            f"target distance range (d_t = {d_t:.2f} m from target_gsd_m = {gsd})"
-        )
-    det_params = detail_params(h, d_t)
-    d_c = _positive(cfg, "coverage", "distance_factor") * d_t
-    ctol = float(cv["distance_tolerance"])
-    if not 0.0 <= ctol < 1.0:
-        raise PlanningError(f"planner ours: coverage.distance_tolerance must lie in [0, 1), got {ctol}")
-    cov_params = HeuristicParams(
-        k_count=int(cv["k_count"]),
-        target_lo_m=d_c * (1.0 - ctol),
-        target_hi_m=d_c * (1.0 + ctol),
-        d_margin_m=_positive(cfg, "coverage", "d_margin_factor") * d_t,
-        r_min=det_params.r_min,
-        r_max=det_params.r_max,
-        top_k=det_params.top_k,
-        tau_edge=det_params.tau_edge,
-        eps=det_params.eps,
-        coverage_closeness_weight=float(cv["closeness_weight"]),
-        **_match_settings(h),
-    )
+    cv = cfg["coverage"]
+    d_t, d_c, limits, n_points = settings.d_t, settings.d_c, settings.limits, settings.n_points
+    det_params, cov_params = settings.det_params, settings.cov_params
     vis = cfg["visibility"]
-    det_limits = VisibilityLimits(
-        vis["min_distance_m"], det_params.target_hi_m + d_margin, vis["max_incidence_deg"]
-    )
-    cov_limits = VisibilityLimits(
-        vis["min_distance_m"], cov_params.target_hi_m + cov_params.d_margin_m, vis["max_incidence_deg"]
-    )
-    n_points = int(cfg["n_points"])
-    for key in ("detail_rounds", "coverage_rounds"):
-        if int(cfg[key]) < 0:
-            raise PlanningError(f"planner ours: {key} must be >= 0, got {cfg[key]}")
-    if int(cfg["detail_rounds"]) < 1:
-        raise PlanningError("planner ours: detail_rounds must be >= 1")
-    cm = cfg["cmaes"]
-    if int(cm["cluster_size"]) < 1 or int(cm["max_generations"]) < 0:
-        raise PlanningError(
-            f"planner ours: cmaes.cluster_size >= 1 and max_generations >= 0 needed, got {cm}"
-        )
-
-    takeoff = cfg["takeoff"]
+    takeoff = settings.takeoff
     if takeoff is None:
         lo = proxy.bounds[0]
         takeoff = [float(lo[0]), float(lo[1]), 0.0]
     takeoff = np.asarray(takeoff, dtype=float).reshape(-1)
-    if takeoff.shape != (3,) or not np.isfinite(takeoff).all():
-        raise PlanningError(f"planner ours: takeoff must be [x, y, z] in metres, got {cfg['takeoff']}")
     time_term = None if ext.time_term is None else ext.time_term(takeoff)
 
     t0 = time.perf_counter()
     points, normals = sample_surface(proxy, n_points, seed)
     weights, evidence = (None, None) if ext.weigh_samples is None else ext.weigh_samples(points, normals)
     det_model = VisibilityModel(
-        proxy, points, normals, intrinsics, det_limits, vis["ray_offset_m"], vis["image_margin_px"]
+        proxy, points, normals, intrinsics, settings.det_limits, vis["ray_offset_m"], vis["image_margin_px"]
     )
-    cov_model = det_model.with_limits(cov_limits)
+    cov_model = det_model.with_limits(settings.cov_limits)
     rec = _Recorder([det_model, cov_model])
     state = ObjectiveState(det_params, n_points, mode="detail", points=points, point_weights=weights)
     rec.record("sample", None, state, [], sample_time_s=time.perf_counter() - t0)
 
-    fallbacks = tuple(float(f) for f in c["fallback_distance_factors"])
-    tilts = tuple(float(t) for t in c["fallback_tilt_deg"])
-    if not all(0.0 < f < 1.0 for f in fallbacks):
-        raise PlanningError(
-            f"planner ours: candidates.fallback_distance_factors must lie in (0, 1), got {list(fallbacks)}"
-        )
-    if not all(0.0 < t < 90.0 for t in tilts):
-        raise PlanningError(
-            f"planner ours: candidates.fallback_tilt_deg must lie in (0, 90), got {list(tilts)}"
-        )
-    det_settings = CandidateSettings(
-        distance_m=d_t,
-        group_size=int(c["group_size"]),
-        n_frontal=int(c["n_frontal"]),
-        frontal_jitter_deg=float(c["frontal_jitter_deg"]),
-        n_side=int(c["n_side"]),
-        side_angle_deg=float(c["side_angle_deg"]),
-        fallback_distance_factors=fallbacks,
-        fallback_tilt_deg=tilts,
-    )
-    # Coverage candidates: the detail candidates' pattern at the coverage distance and group size.
-    cov_settings = replace(det_settings, distance_m=d_c, group_size=int(cv["group_size"]))
-    for s in (det_settings, cov_settings):
-        if s.group_size < 1 or s.n_frontal < 1 or s.n_side < 0:
-            raise PlanningError(f"planner ours: need group_size >= 1, n_frontal >= 1, n_side >= 0, got {s}")
-    cma_det = CmaSettings(
-        cluster_size=int(cm["cluster_size"]),
-        max_generations=int(cm["max_generations"]),
-        popsize=cm["popsize"],
-        sigma0=float(cm["sigma0"]),
-        position_box_m=float(cm["position_box_factor"]) * d_t,
-        pitch_box_deg=float(cm["pitch_box_deg"]),
-        yaw_box_deg=float(cm["yaw_box_deg"]),
-    )
-    cma_cov = CmaSettings(**{**cma_det.__dict__, "position_box_m": float(cm["position_box_factor"]) * d_c})
+    det_settings, cov_settings = settings.det_candidates, settings.cov_candidates
+    cma_det, cma_cov = settings.cma_det, settings.cma_cov
     cul = cfg["culling"]
     cull_tol = float(cul["tolerance"]) * n_points
 

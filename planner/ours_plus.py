@@ -25,9 +25,10 @@ from planner.base import plain_params
 from planner.evidence import EvidenceSettings, proxy_evidence, sample_weights
 from planner.flight_time_term import FlightTimeTerm
 from planner.ours import PlanExtensions, plan_with, resolve_params
-from planner.sampling import PROXY_CLOUD_KEY
+from planner.ours_settings import OursSettings
 from scene.camera import Intrinsics
 from scene.plan import Plan, PlanningError
+from scene.proxy_mesh import PROXY_CLOUD_KEY
 
 EXTRA_SECTIONS = ("evidence", "flight_time", "drone")
 
@@ -62,8 +63,8 @@ def evidence_weigher(proxy: trimesh.Trimesh, settings: EvidenceSettings):
     return weigh
 
 
-def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: int) -> Plan:
-    """Plan like ``planner.ours.plan`` with the exploration's evidence and a flight-time term."""
+def _parsed(params: Mapping) -> tuple[EvidenceSettings, float, DroneSettings, dict]:
+    """(evidence settings, flight-time weight per percent, drone, the paper's resolved settings)."""
     raw = plain_params(params)
     missing = [k for k in EXTRA_SECTIONS if k not in raw]
     if missing:
@@ -76,7 +77,17 @@ def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: 
             f"planner ours_plus: flight_time.weight_per_pct must be >= 0, got {weight_per_pct}"
         )
     drone = DroneSettings.from_config(raw.pop("drone"))
-    cfg = resolve_params(raw)
+    return evidence, weight_per_pct, drone, resolve_params(raw)
+
+
+def check_params(params: Mapping, intrinsics: Intrinsics) -> None:
+    """Refuse a bad setting before any work (the planner contract, ``planner.base``)."""
+    OursSettings.build(_parsed(params)[3], intrinsics)
+
+
+def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: int) -> Plan:
+    """Plan like ``planner.ours.plan`` with the exploration's evidence and a flight-time term."""
+    evidence, weight_per_pct, drone, cfg = _parsed(params)
 
     def time_term(takeoff: np.ndarray) -> FlightTimeTerm:
         return FlightTimeTerm(drone, weight_per_pct, np.asarray(takeoff, float))

@@ -7,15 +7,6 @@ import trimesh
 
 from scene.plan import PlanningError
 
-# ``proxy.metadata`` key of the exploratory flight's oriented cloud, {"points": (N, 3), "normals":
-# (N, 3)} in world metres, when the proxy was reconstructed (planners that read the coarse model's
-# points, such as Yan's confidence term, use it; a degraded ground truth has none).
-PROXY_CLOUD_KEY = "exploration_cloud"
-# ``proxy.metadata`` key of the exploratory flight's registered views, {"recon_dir": <recon folder
-# holding sparse/>, "image_dir": <its images>}: the exploration's own poses and images, read by
-# ours_plus' photo-consistency evidence (planner/photo_evidence.py).
-PROXY_VIEWS_KEY = "exploration_views"
-
 
 def validate_proxy(mesh: trimesh.Trimesh, name: str = "proxy") -> trimesh.Trimesh:
     """Return ``mesh`` if it has finite vertices and positive surface area; raise PlanningError.

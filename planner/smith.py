@@ -104,6 +104,12 @@ def _merged(params: Mapping | None) -> dict:
     return merged
 
 
+def check_params(params: Mapping | None, intrinsics: Intrinsics) -> None:
+    """Refuse a bad setting before any work (the planner contract, ``planner.base``)."""
+    del intrinsics
+    _merged(params)
+
+
 def initial_grid(bounds: Box, intrinsics: Intrinsics, params: Mapping) -> tuple[np.ndarray, list[str]]:
     """Smith's initial flight: one nadir and two oblique grid passes over the structure.
 

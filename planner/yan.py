@@ -42,11 +42,12 @@ from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from planner.base import merge_params
-from planner.sampling import PROXY_CLOUD_KEY, sample_surface, validate_proxy
+from planner.sampling import sample_surface, validate_proxy
 from planner.trajectory import order_viewpoints
 from planner.visibility import VisibilityLimits, VisibilityModel
 from scene.camera import Intrinsics, aim_at
 from scene.plan import Plan, PlanningError
+from scene.proxy_mesh import PROXY_CLOUD_KEY
 
 DEFAULTS = {
     "n_samples": 4000,
@@ -111,6 +112,11 @@ def _merged(params: Mapping | None) -> dict:
             f"yan: confidence_percentile must lie in (0, 100], got {merged['confidence_percentile']}"
         )
     return merged
+
+
+def check_params(params: Mapping | None, intrinsics: Intrinsics) -> None:
+    """Refuse a bad setting before any work (the planner contract, ``planner.base``)."""
+    distance_limits(_merged(params), intrinsics)
 
 
 def distance_limits(params: Mapping, intrinsics: Intrinsics) -> tuple[float, float, float]:

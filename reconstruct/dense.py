@@ -32,6 +32,7 @@ import numpy as np
 import pycolmap
 from tqdm import tqdm
 
+from reconstruct.dense_settings import BACKENDS, DenseSettings
 from scene.io import write_atomic, write_text_atomic
 
 if TYPE_CHECKING:
@@ -39,7 +40,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-BACKENDS = ("auto", "cpu", "cuda")
 DEPTH_SUFFIX = ".geometric.bin"
 # A rectified view larger than this many times the source image comes from a near-degenerate pair.
 _MAX_RECTIFIED_AREA_RATIO = 4.0
@@ -803,6 +803,7 @@ def dense_reconstruct(
     Returns:
         ``backend``, ``dense_time_s`` (s), ``n_depth_maps``, ``n_dense_points``, ``dense_path``.
     """
+    DenseSettings.from_config(cfg)  # a bad setting is refused before the workspace is touched
     backend = select_backend(str(cfg["backend"]))
     start = time.perf_counter()
     workspace = prepare_workspace(Path(sparse_dir), Path(image_dir), Path(out_dir) / "dense", cfg)

@@ -36,9 +36,11 @@ from reconstruct.dense import FUSION_BYTES_PER_PX, dense_reconstruct
 from reconstruct.errors import ReconstructionError
 from reconstruct.flight import CAMERAS_FILE, Flight, read_flight, simulate_gnss
 from reconstruct.proxy import poisson_proxy
-from reconstruct.sfm import COLMAP_GLOBAL_BA_MAX_REFINEMENTS, COLMAP_LOCAL_BA, run_sfm
+from reconstruct.sfm import run_sfm
+from reconstruct.sfm_settings import COLMAP_GLOBAL_BA_MAX_REFINEMENTS, COLMAP_LOCAL_BA
 from reconstruct.timing import stage_time
 from scene.base import Box
+from scene.config import plain
 from scene.io import write_atomic, write_json_atomic
 
 log = logging.getLogger(__name__)
@@ -74,20 +76,6 @@ FUSION_BUDGET_KEY = "max_memory_gb"
 REFERENCE_VIEWS_KEYS = ("reference_views_per_point", "reference_min_new_points")
 
 
-def _plain(value):
-    """A JSON-able copy of a Mapping/DictConfig section."""
-    try:
-        from omegaconf import DictConfig, ListConfig, OmegaConf
-
-        if isinstance(value, DictConfig | ListConfig):
-            return OmegaConf.to_container(value, resolve=True)
-    except ImportError:  # pragma: no cover - omegaconf comes with hydra
-        pass
-    if isinstance(value, Mapping):
-        return {str(k): _plain(v) for k, v in value.items()}
-    return value
-
-
 def _in_effect(section: str, value, fusion_bytes: float = 0.0):
     # The other mapper's settings cannot change a model: a new global-only setting must not move
     # the cache keys of incremental runs (their proxies stay valid). Nor can a fusion memory budget
@@ -115,7 +103,7 @@ def _in_effect(section: str, value, fusion_bytes: float = 0.0):
 def proxy_settings(cfg: Mapping) -> dict:
     """The ``reconstruct`` settings a proxy depends on (all but ``OUTPUT_ONLY_KEYS`` and the other
     mapper's settings), for cache keys."""
-    return {key: _in_effect(key, value) for key, value in _plain(cfg).items() if key not in OUTPUT_ONLY_KEYS}
+    return {key: _in_effect(key, value) for key, value in plain(cfg).items() if key not in OUTPUT_ONLY_KEYS}
 
 
 def flight_fusion_bytes(n_images: int, intrinsics: Mapping, dense_cfg: Mapping) -> float:
@@ -135,7 +123,7 @@ def flight_content_key(image_dir: Path, flight: Flight, cfg: Mapping, seed: int)
     digest = hashlib.sha256()
     cameras = json.loads((Path(image_dir) / CAMERAS_FILE).read_text())
     fusion_bytes = flight_fusion_bytes(len(flight.names), cameras["intrinsics"], cfg["dense"])
-    config = {key: _in_effect(key, _plain(cfg[key]), fusion_bytes) for key in FLIGHT_CONFIG_KEYS}
+    config = {key: _in_effect(key, plain(cfg[key]), fusion_bytes) for key in FLIGHT_CONFIG_KEYS}
     header = {
         "config": config,
         "seed": int(seed),
@@ -398,13 +386,13 @@ def proxy_flight_config(cfg: Mapping) -> dict:
     The proxy is meshed from a cloud voxelised at ``proxy.voxel_size_m``, so its depth maps need not
     be computed at the scored flights' resolution (``proxy.dense.max_image_size``).
     """
-    plain = _plain(cfg)
-    overrides = plain["proxy"].get("dense") or {}
-    unknown = sorted(set(overrides) - set(plain["dense"]))
+    flight_cfg = plain(cfg)
+    overrides = flight_cfg["proxy"].get("dense") or {}
+    unknown = sorted(set(overrides) - set(flight_cfg["dense"]))
     if unknown:
         raise ValueError(f"reconstruct.proxy.dense: unknown dense settings {unknown}")
-    plain["dense"] = {**plain["dense"], **overrides}
-    return plain
+    flight_cfg["dense"] = {**flight_cfg["dense"], **overrides}
+    return flight_cfg
 
 
 def _roi_key(roi: Box | None, pcfg: Mapping) -> list | None:
@@ -449,7 +437,7 @@ def build_proxy(
         )
     key = hashlib.sha256(
         json.dumps(
-            {"recon": recon["content_key"], "proxy": _plain(pcfg), "roi": _roi_key(roi, pcfg)},
+            {"recon": recon["content_key"], "proxy": plain(pcfg), "roi": _roi_key(roi, pcfg)},
             sort_keys=True,
         ).encode()
     ).hexdigest()

@@ -19,20 +19,13 @@ import pycolmap
 from reconstruct.errors import ReconstructionError
 from reconstruct.flight import Flight
 from reconstruct.pair_check import PairCheckSettings, logged_attitudes, reject_pairs_against_priors
+from reconstruct.sfm_settings import SfmSettings
 from reconstruct.timing import stage_time
 from scene.io import write_text_atomic
 
 log = logging.getLogger(__name__)
 
-MATCHING_METHODS = ("auto", "exhaustive", "spatial", "pose_prior", "sequential")
 PAIRS_FILE = "pairs.txt"
-MAPPING_METHODS = ("incremental", "global")
-# COLMAP's ba_global_max_refinements: bundle adjust + filter rounds per global BA of the incremental
-# mapper (it stops earlier once fewer than 0.05 % of the observations change).
-COLMAP_GLOBAL_BA_MAX_REFINEMENTS = 5
-# COLMAP's local bundle adjustment after each registered image: the images sharing most points with
-# it, Ceres iterations, bundle adjust + filter rounds. Settings added after records at these values.
-COLMAP_LOCAL_BA = {"local_ba_num_images": 6, "local_ba_max_iterations": 25, "local_ba_max_refinements": 2}
 
 
 @dataclass
@@ -89,36 +82,25 @@ def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> Sfm
     those last bits. Extraction and matching give the same database on any thread count (image ids
     fixed by ``extract_features``, RANSAC seeded), so they keep every core.
     """
-    ecfg, mcfg, pcfg = cfg["extraction"], cfg["matching"], cfg["mapping"]
-    threads = int(cfg.get("num_threads", -1))
+    settings = SfmSettings.from_config(cfg)
+    ecfg, mcfg, pcfg = settings.extraction, settings.matching, settings.mapping
+    threads = settings.num_threads
     mapper_threads = 1 if deterministic else threads
-    matching_method = str(mcfg["method"])
-    if matching_method not in MATCHING_METHODS:
-        raise ValueError(
-            f"reconstruct.sfm.matching.method must be one of {MATCHING_METHODS}, got {matching_method!r}"
-        )
-    mapping_method = str(pcfg["method"])
-    if mapping_method not in MAPPING_METHODS:
-        raise ValueError(
-            f"reconstruct.sfm.mapping.method must be one of {MAPPING_METHODS}, got {mapping_method!r}"
-        )
-
-    growth = float(pcfg["global_ba_growth_ratio"])
-    if growth <= 1.0:
-        raise ValueError(f"reconstruct.sfm.mapping.global_ba_growth_ratio must be > 1, got {growth}")
+    matching_method, mapping_method = mcfg.method, pcfg.method
+    growth = pcfg.global_ba_growth_ratio
 
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = threads
-    extraction.max_image_size = int(ecfg["max_image_size"])
-    extraction.sift.max_num_features = int(ecfg["max_num_features"])
-    extraction.sift.first_octave = int(ecfg["first_octave"])
+    extraction.max_image_size = ecfg.max_image_size
+    extraction.sift.max_num_features = ecfg.max_num_features
+    extraction.sift.first_octave = ecfg.first_octave
 
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = threads
-    matching.guided_matching = bool(mcfg["guided_matching"])
-    matching.sift.max_ratio = float(mcfg["max_ratio"])
+    matching.guided_matching = mcfg.guided_matching
+    matching.sift.max_ratio = mcfg.max_ratio
 
-    prior_check = PairCheckSettings.from_config(mcfg.get("prior_check"))
+    prior_check = PairCheckSettings.from_config(mcfg.prior_check)
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = int(seed)
 
@@ -126,42 +108,35 @@ def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> Sfm
     spatial = pycolmap.SpatialPairingOptions()
     # Survey flights are 3-D (oblique rings, facades): neighbours by full 3-D distance.
     spatial.ignore_z = False
-    spatial.max_num_neighbors = int(mcfg["spatial_max_num_neighbors"])
-    max_distance = float(mcfg["spatial_max_distance_m"])
+    spatial.max_num_neighbors = mcfg.spatial_max_num_neighbors
+    max_distance = mcfg.spatial_max_distance_m
     spatial.max_distance = max_distance if max_distance > 0 else 1e12
     spatial.num_threads = threads
     sequential = pycolmap.SequentialPairingOptions()
-    sequential.overlap = int(mcfg["sequential_overlap"])
+    sequential.overlap = mcfg.sequential_overlap
     sequential.num_threads = threads
 
     incremental = pycolmap.IncrementalPipelineOptions()
     incremental.num_threads = mapper_threads
     incremental.mapper.num_threads = mapper_threads
     incremental.random_seed = int(seed)
-    incremental.min_model_size = int(pcfg["min_model_size"])
-    incremental.ba_refine_focal_length = bool(pcfg["refine_focal_length"])
-    incremental.ba_refine_principal_point = bool(pcfg["refine_principal_point"])
-    incremental.ba_refine_extra_params = bool(pcfg["refine_extra_params"])
-    incremental.mapper.abs_pose_refine_focal_length = bool(pcfg["refine_focal_length"])
-    incremental.mapper.abs_pose_refine_extra_params = bool(pcfg["refine_extra_params"])
+    incremental.min_model_size = pcfg.min_model_size
+    incremental.ba_refine_focal_length = pcfg.refine_focal_length
+    incremental.ba_refine_principal_point = pcfg.refine_principal_point
+    incremental.ba_refine_extra_params = pcfg.refine_extra_params
+    incremental.mapper.abs_pose_refine_focal_length = pcfg.refine_focal_length
+    incremental.mapper.abs_pose_refine_extra_params = pcfg.refine_extra_params
     incremental.ba_global_frames_ratio = growth
     incremental.ba_global_points_ratio = growth
-    incremental.ba_global_max_num_iterations = int(pcfg["global_ba_max_iterations"])
-    refinements = int(pcfg.get("global_ba_max_refinements", COLMAP_GLOBAL_BA_MAX_REFINEMENTS))
-    if refinements < 1:
-        raise ValueError(f"reconstruct.sfm.mapping.global_ba_max_refinements must be >= 1, got {refinements}")
-    incremental.ba_global_max_refinements = refinements
-    incremental.mapper.ba_global_ignore_redundant_points3D = bool(pcfg["global_ba_skip_redundant_points"])
-    local = {key: int(pcfg.get(key, colmap)) for key, colmap in COLMAP_LOCAL_BA.items()}
-    for key, value in local.items():
-        if value < 1:
-            raise ValueError(f"reconstruct.sfm.mapping.{key} must be >= 1, got {value}")
-    incremental.mapper.ba_local_num_images = local["local_ba_num_images"]
-    incremental.ba_local_max_num_iterations = local["local_ba_max_iterations"]
-    incremental.ba_local_max_refinements = local["local_ba_max_refinements"]
-    incremental.use_prior_position = bool(pcfg["use_prior_position"])
-    incremental.use_robust_loss_on_prior_position = bool(pcfg["use_prior_position"]) and bool(
-        pcfg["robust_loss_on_prior_position"]
+    incremental.ba_global_max_num_iterations = pcfg.global_ba_max_iterations
+    incremental.ba_global_max_refinements = pcfg.global_ba_max_refinements
+    incremental.mapper.ba_global_ignore_redundant_points3D = pcfg.global_ba_skip_redundant_points
+    incremental.mapper.ba_local_num_images = pcfg.local_ba_num_images
+    incremental.ba_local_max_num_iterations = pcfg.local_ba_max_iterations
+    incremental.ba_local_max_refinements = pcfg.local_ba_max_refinements
+    incremental.use_prior_position = pcfg.use_prior_position
+    incremental.use_robust_loss_on_prior_position = (
+        pcfg.use_prior_position and pcfg.robust_loss_on_prior_position
     )
 
     global_ = pycolmap.GlobalPipelineOptions()
@@ -169,20 +144,20 @@ def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> Sfm
     global_.mapper.num_threads = mapper_threads
     global_.random_seed = int(seed)
     global_.mapper.random_seed = int(seed)
-    global_.mapper.bundle_adjustment.refine_focal_length = bool(pcfg["refine_focal_length"])
-    global_.mapper.bundle_adjustment.refine_principal_point = bool(pcfg["refine_principal_point"])
-    global_.mapper.bundle_adjustment.refine_extra_params = bool(pcfg["refine_extra_params"])
+    global_.mapper.bundle_adjustment.refine_focal_length = pcfg.refine_focal_length
+    global_.mapper.bundle_adjustment.refine_principal_point = pcfg.refine_principal_point
+    global_.mapper.bundle_adjustment.refine_extra_params = pcfg.refine_extra_params
 
     # After the global mapper (which has no GNSS term): one bundle adjustment with the priors.
     prior_ba = pycolmap.BundleAdjustmentOptions()
-    prior_ba.refine_focal_length = bool(pcfg["refine_focal_length"])
-    prior_ba.refine_principal_point = bool(pcfg["refine_principal_point"])
-    prior_ba.refine_extra_params = bool(pcfg["refine_extra_params"])
-    prior_ba.ceres.solver_options.max_num_iterations = int(pcfg["global_prior_ba_max_iterations"])
+    prior_ba.refine_focal_length = pcfg.refine_focal_length
+    prior_ba.refine_principal_point = pcfg.refine_principal_point
+    prior_ba.refine_extra_params = pcfg.refine_extra_params
+    prior_ba.ceres.solver_options.max_num_iterations = pcfg.global_prior_ba_max_iterations
     prior_ba.ceres.solver_options.num_threads = mapper_threads
     prior_ba_prior = pycolmap.PosePriorBundleAdjustmentOptions()
     prior_ba_prior.alignment_ransac.random_seed = int(seed)
-    if bool(pcfg["robust_loss_on_prior_position"]):
+    if pcfg.robust_loss_on_prior_position:
         prior_ba_prior.ceres.prior_position_loss_function_type = pycolmap.LossFunctionType.CAUCHY
 
     return SfmOptions(
@@ -194,15 +169,15 @@ def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> Sfm
         sequential=sequential,
         incremental=incremental,
         global_=global_,
-        global_prior_ba=bool(pcfg["global_prior_ba"]),
+        global_prior_ba=pcfg.global_prior_ba,
         prior_ba=prior_ba,
         prior_ba_prior=prior_ba_prior,
         matching_method=matching_method,
-        exhaustive_max_images=int(mcfg["exhaustive_max_images"]),
+        exhaustive_max_images=mcfg.exhaustive_max_images,
         mapping_method=mapping_method,
-        pose_prior_max_neighbors=int(mcfg["pose_prior_max_neighbors"]),
-        pose_prior_max_distance_m=float(mcfg["pose_prior_max_distance_m"]),
-        pose_prior_max_axis_angle_deg=float(mcfg["pose_prior_max_axis_angle_deg"]),
+        pose_prior_max_neighbors=mcfg.pose_prior_max_neighbors,
+        pose_prior_max_distance_m=mcfg.pose_prior_max_distance_m,
+        pose_prior_max_axis_angle_deg=mcfg.pose_prior_max_axis_angle_deg,
         prior_check=prior_check,
     )
 

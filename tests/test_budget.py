@@ -62,7 +62,7 @@ def test_bad_budgets_are_refused_by_name(config, level, message):
 def test_run_passes_the_level_to_the_planner_and_records_it():
     from hydra import compose, initialize_config_dir
 
-    from run import planner_setup
+    from pipeline.settings import planner_setup
 
     with initialize_config_dir(config_dir=os.fspath(ROOT / "conf"), version_base=None):
         cfg = compose("config", overrides=["planner=yan", "budget=low"])
@@ -75,7 +75,7 @@ def test_the_budgets_preset_sweeps_levels_every_planner_defines():
     import yaml
     from hydra import compose, initialize_config_dir
 
-    from run import planner_setup
+    from pipeline.settings import planner_setup
 
     sweep = yaml.safe_load((ROOT / "conf" / "experiment" / "budgets.yaml").read_text())["hydra"]["sweeper"]
     planners, levels = (sweep["params"][k].split(",") for k in ("planner", "budget"))

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from experiments.cache import MARKER, cache_key, cached_entry
+from pipeline.cache import MARKER, cache_key, cached_entry
 
 
 def _build_slowly(cache_dir: str, counter: str) -> str:
@@ -62,7 +62,7 @@ def test_exploration_key_follows_the_scene_content_not_only_its_config():
     import numpy as np
     from hydra import compose, initialize_config_dir
 
-    from experiments.exploration import exploration_cache_key
+    from pipeline.proxy import exploration_cache_key as key_of
     from scene.base import Box, MeshPart, Scene
 
     conf_dir = Path(__file__).resolve().parents[1] / "conf"
@@ -80,6 +80,11 @@ def test_exploration_key_follows_the_scene_content_not_only_its_config():
         texture = np.full((4, 4, 3), texture_value, np.uint8)
         box = Box((0, 0, 0), (1, 1, 1))
         return Scene("tomb", [quad], {"ground": texture}, box, box)
+
+    def exploration_cache_key(cfg, scene):
+        return key_of(
+            scene, cfg.scene, cfg.camera, cfg.exploration, cfg.render, cfg.reconstruct, int(cfg.seed)
+        )
 
     same_a, same_b, other = scene(10), scene(10), scene(11)
     assert exploration_cache_key(cfg, same_a) == exploration_cache_key(cfg, same_b)

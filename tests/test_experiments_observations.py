@@ -8,7 +8,7 @@ import trimesh
 
 from evaluate.settings import EvaluationSettings
 from experiments import observations
-from experiments.observations import ObservationCriteria, observation_shares
+from pipeline.forecast import ObservationCriteria, observation_shares
 from scene.camera import Intrinsics
 from scene.cameras_file import write_cameras
 from tests.experiments_fixtures import write_run

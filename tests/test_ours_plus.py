@@ -13,8 +13,8 @@ from drone.model import DroneSettings, split_flights
 from planner import ours, ours_plus
 from planner.evidence import EvidenceSettings, evidence_signals, sample_weights
 from planner.flight_time_term import FlightTimeTerm, greedy_order
-from planner.sampling import PROXY_CLOUD_KEY
 from scene.plan import PlanningError
+from scene.proxy_mesh import PROXY_CLOUD_KEY
 from tests.planner_scenes import box_building
 from tests.test_planner_ours import CAMERA, SMALL
 

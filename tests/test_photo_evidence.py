@@ -113,8 +113,8 @@ def test_bad_photo_settings_are_refused(key, value, message):
 
 
 def test_an_exploration_entry_hands_its_views_to_the_planner(tmp_path):
-    from experiments.exploration import load_proxy
-    from planner.sampling import PROXY_VIEWS_KEY
+    from pipeline.proxy import load_proxy
+    from scene.proxy_mesh import PROXY_VIEWS_KEY
 
     _plane(0.0).export(tmp_path / "proxy.ply")
     assert PROXY_VIEWS_KEY not in load_proxy(tmp_path).metadata  # no registered views yet
@@ -128,7 +128,7 @@ def test_a_proxy_carries_its_own_evidence():
     """``proxy_evidence`` reads the cloud the proxy carries: a sample 1 m from the cloud's edge is a
     gap (signal 1), one inside it is sure (0); no views with it, no photo signal; no cloud, None."""
     from planner.evidence import proxy_evidence
-    from planner.sampling import PROXY_CLOUD_KEY
+    from scene.proxy_mesh import PROXY_CLOUD_KEY
 
     settings = EvidenceSettings(1.0, 0.3, 0.15, 0.6, 0.25, 0.75, 25.0, 60.0, SETTINGS)
     proxy = _plane(0.0)

@@ -8,7 +8,7 @@ import hydra
 import pytest
 from hydra import compose, initialize_config_dir
 
-from run import planner_params
+from pipeline.settings import planner_params
 from scene.camera import Intrinsics
 from scene.plan import write_plan
 from tests.planner_scenes import box_building

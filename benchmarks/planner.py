@@ -21,15 +21,15 @@ import numpy as np
 import yaml
 from threadpoolctl import threadpool_limits
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from planner.cmaes_refine import spatial_clusters
+from planner.objective import ObjectiveState
+from planner.ours import plan, resolve_params
+from planner.ours_settings import detail_params
+from planner.sampling import sample_surface
+from planner.visibility import VisibilityLimits, VisibilityModel
+from scene.camera import Intrinsics
 
-from planner.cmaes_refine import spatial_clusters  # noqa: E402
-from planner.objective import ObjectiveState  # noqa: E402
-from planner.ours import detail_params, plan, resolve_params  # noqa: E402
-from planner.sampling import sample_surface  # noqa: E402
-from planner.visibility import VisibilityLimits, VisibilityModel  # noqa: E402
-from scene.camera import Intrinsics  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def _load_yaml(path: Path) -> dict:

@@ -29,8 +29,6 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:  # run as a script from anywhere
-    sys.path.insert(0, str(ROOT))
 REPORTED = ("acc90_m", "comp_050", "comp_050_walls", "comp_050_roofs", "comp_050_ground")
 
 

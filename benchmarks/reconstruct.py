@@ -33,8 +33,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:  # run as a script from anywhere
-    sys.path.insert(0, str(ROOT))
 STAGES = (
     "extraction_time_s",
     "matching_time_s",
@@ -123,7 +121,7 @@ def run_one(image_dir: Path, out_dir: Path, mode: str = "default", settings: str
     return record
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--counts", type=int, nargs="+", default=[50, 100, 200])
     parser.add_argument("--images", type=Path, default=None, help="an existing rendered flight to cut")
@@ -140,7 +138,7 @@ def main() -> None:
     parser.add_argument(
         "--one", nargs=4, metavar=("IMAGE_DIR", "OUT_DIR", "MODE", "SETTINGS"), help=argparse.SUPPRESS
     )
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     if args.one:
         image_dir, out_dir, mode, settings = args.one
         record = run_one(Path(image_dir), Path(out_dir), mode, settings)
@@ -185,7 +183,8 @@ def main() -> None:
     (args.out / "bench.json").parent.mkdir(parents=True, exist_ok=True)
     (args.out / "bench.json").write_text(json.dumps(dict(rows), indent=1, default=str))
     print(f"cpu cores: {os.cpu_count()}; records: {args.out / 'bench.json'}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -12,6 +12,7 @@ facing into the cavity); a buttress buried half in the hall's wall; a tower; a c
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -69,14 +70,15 @@ def building() -> trimesh.Scene:
     return scene
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", type=Path, required=True, help="the GLB to write")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     data = building().export(file_type="glb")
     write_atomic(args.out, lambda p: p.write_bytes(data))
     print(f"wrote {args.out}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

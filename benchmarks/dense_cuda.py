@@ -42,8 +42,6 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:  # run as a script from anywhere
-    sys.path.insert(0, str(ROOT))
 
 CONFIG = ROOT / "conf" / "reconstruct" / "default.yaml"
 MAX_PLY_POINTS = 1_250_000  # 12 bytes each: the PLY stays under 16 MB, to copy back
@@ -240,7 +238,7 @@ def time_render(viewpoints_csv: Path, out: Path, n_views: int, cache_dir: Path) 
     return record
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -267,7 +265,7 @@ def main() -> None:
     r.add_argument("out", type=Path)
     r.add_argument("--views", type=int, default=100)
     r.add_argument("--cache-dir", type=Path, default=Path("/tmp/cache"))
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     if args.step == "workspace":
         build_workspace(args.sparse, args.images, args.out, args.num_images, args.seed, args.max_image_size)
     elif args.step == "dense":
@@ -276,7 +274,8 @@ def main() -> None:
         time_render(args.viewpoints_csv, args.out, args.views, args.cache_dir)
     else:
         score(args.plys, args.workspace, args.scene, args.voxel_m)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import glob
 import resource
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -67,13 +68,13 @@ def make_scan(source: str, subdivisions: int, half_more: bool, out: Path) -> tup
     return path, len(faces)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--subdivisions", type=int, default=4)
     parser.add_argument("--half-more", action="store_true", help="subdivide half of the faces once more")
     parser.add_argument("--views", type=int, default=10)
     parser.add_argument("--points", type=int, default=5_000_000)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
 
     from evaluate.geometry import sample_surface
     from evaluate.metrics import score_details
@@ -126,7 +127,8 @@ def main() -> None:
             f"scored: acc90 {r['acc90_m']:.4f} m, comp 5 cm {r['comp_050']:.1f} %, "
             f"enclosed {r['gt_enclosed_pct']:.1f} % of {n_samples:,} samples"
         )
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -17,8 +17,6 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:  # run as a script from anywhere
-    sys.path.insert(0, str(ROOT))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -27,7 +25,8 @@ def main(argv: list[str] | None = None) -> int:
 
     from drone.model import DroneSettings
     from mission.validate import validate_plan
-    from run import obtain_proxy, planner_setup
+    from pipeline.proxy import proxy_stage
+    from pipeline.settings import planner_setup
     from scene.camera import Intrinsics
     from scene.enclosure import enclosed_positions, raycasting_scene
     from scene.registry import load_scene
@@ -38,7 +37,17 @@ def main(argv: list[str] | None = None) -> int:
     params, _ = planner_setup(cfg)
     scene = load_scene(cfg.scene, cache_dir=cfg.cache_dir)
     intrinsics = Intrinsics(**cfg.camera)
-    proxy = obtain_proxy(scene, intrinsics, cfg, {})
+    proxy, _ = proxy_stage(
+        scene,
+        intrinsics,
+        scene_cfg=cfg.scene,
+        camera_cfg=cfg.camera,
+        exploration_cfg=cfg.exploration,
+        render_cfg=cfg.render,
+        reconstruct_cfg=cfg.reconstruct,
+        cache_dir=cfg.cache_dir,
+        seed=cfg.seed,
+    )
     start = time.perf_counter()
     plan = hydra.utils.get_method(cfg.planner._target_)(proxy, intrinsics, params, cfg.seed)
     plan_s = time.perf_counter() - start

@@ -27,11 +27,9 @@ import shutil
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:  # run as a script from anywhere
-    sys.path.insert(0, str(ROOT))
+from experiments.bench_dense import parse_variant
 
-from experiments.bench_dense import parse_variant  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 STAGES = ("extraction", "matching", "mapping")
 

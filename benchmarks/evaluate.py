@@ -12,6 +12,7 @@ resident memory of the process while scoring (sampled every 20 ms).
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 import threading
 import time
@@ -82,13 +83,13 @@ class PeakMemory:
         self.peak = max(self.peak, self.process.memory_info().rss)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--points", type=int, default=5_000_000)
     parser.add_argument("--grid", type=int, default=708, help="vertices per side (708 -> ~1M triangles)")
     parser.add_argument("--from-file", action="store_true", help="also score from a binary PLY on disk")
     parser.add_argument("--vis", action="store_true", help="also time the error pictures")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
 
     start = time.perf_counter()
     mesh = terrain_mesh(args.grid)
@@ -149,7 +150,8 @@ def main() -> None:
                 settings.visualise,
             )
             print(f"error pictures (2 PLYs, 10 PNGs): {time.perf_counter() - start:.1f} s")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -28,8 +28,6 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
 
 PLANNERS = ("lawnmower", "smith", "yan")
 # Every planner config (conf/planner/<name>.yaml) can be given; PLANNERS are the default set.
@@ -89,10 +87,10 @@ def main(argv=None) -> int:
 
     from drone.model import DroneSettings, flight_summary
     from evaluate.settings import EvaluationSettings
-    from experiments.exploration import load_proxy
-    from experiments.observations import predicted_coverage
+    from pipeline.forecast import predicted_coverage
+    from pipeline.proxy import load_proxy
+    from pipeline.settings import planner_setup
     from reconstruct.proxy import degraded_ground_truth
-    from run import planner_setup
     from scene.camera import Intrinsics
     from scene.io import write_json_atomic
     from scene.registry import load_scene

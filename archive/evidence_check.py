@@ -22,12 +22,10 @@ import numpy as np
 import pandas as pd
 from scipy.stats import spearmanr
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:  # run as a script from anywhere
-    sys.path.insert(0, str(ROOT))
+from experiments.runs import RunDirectoryError, load_runs, read_run_config, scene_name
+from scene.io import write_text_atomic
 
-from experiments.runs import RunDirectoryError, load_runs, read_run_config, scene_name  # noqa: E402
-from scene.io import write_text_atomic  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 SIGNALS = ("gap", "support", "normal", "photo")
 
@@ -54,7 +52,7 @@ def true_error_m(mesh, points: np.ndarray) -> np.ndarray:
 
 def check_entry(entry: Path, ground_truth, n_points: int, seed: int) -> dict:
     """Weights, signals and true errors of one exploration entry's proxy samples; the correlations."""
-    from experiments.exploration import load_proxy
+    from pipeline.proxy import load_proxy
     from planner.evidence import proxy_evidence, sample_weights
     from planner.sampling import sample_surface
 

@@ -1,0 +1,216 @@
+"""One cell of the study, end to end: the pipeline as a library.
+
+    settings -> scene -> proxy -> plan (+ check, forecast, flight time) -> render -> reconstruct
+    -> evaluate -> metrics.json
+
+``run_cell(cfg, run_dir, record)`` chains the stages; each stage is a function that takes its own
+config group and writes its artefact into the run directory (``plan/``, ``images/``, ``recon/``,
+``eval/``). ``run_and_record`` is what ``run.py`` calls: it runs the cell and writes ``metrics.json``
+whether the cell succeeded or failed. The planner only ever sees the proxy; the reconstruction only
+sees images and GNSS-like noisy camera positions.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Mapping
+from pathlib import Path
+
+import hydra
+import trimesh
+from omegaconf import DictConfig, OmegaConf
+
+from drone.model import DroneSettings, flight_summary
+from evaluate.settings import EvaluationSettings
+from pipeline.forecast import predicted_coverage
+from planner.budget import DEFAULT_LEVEL
+from reconstruct.timing import cpu_seconds
+from scene.camera import Intrinsics
+from scene.plan import Plan, write_plan
+
+log = logging.getLogger("run")
+
+FORECAST_CRITERIA = ">= 3 planned views within 1.3 d_t and 60 deg of the normal (pipeline.forecast)"
+
+
+class CellFailed(RuntimeError):
+    """The cell failed; metrics.json records the failure (a sweep reports it and goes on)."""
+
+
+def scene_label(cfg: DictConfig) -> str:
+    """The scene's name in records: its config's name, or for ``scene=mesh`` the mesh file's stem
+    (``scene.path=cache/meshes/hall.glb`` -> ``hall``), so two users' meshes are two scenes."""
+    path = OmegaConf.select(cfg, "scene.path", default=None) if cfg.scene.name == "mesh" else None
+    return Path(str(path)).stem if path else str(cfg.scene.name)
+
+
+def plan_stage(
+    proxy: trimesh.Trimesh,
+    intrinsics: Intrinsics,
+    target: str,
+    params: Mapping,
+    seed: int,
+    drone: DroneSettings,
+    evaluation: EvaluationSettings,
+    target_gsd_m: float,
+    out_dir: Path,
+) -> tuple[Plan, dict]:
+    """Plan on the proxy, check it against the drone, forecast it, time it; write ``out_dir``.
+
+    Args:
+        target: the planner's ``plan`` function (``planner._target_``).
+        params: its parameters (``pipeline.settings.planner_setup``).
+        evaluation: the surface classes the forecast reports (``evaluate``).
+        target_gsd_m: the survey's GSD (m/px): the forecast's d_t.
+        out_dir: the plan folder (``viewpoints.csv``, ``plan.json``).
+
+    Returns:
+        (the plan, the ``metrics.json`` fields: ``plan_time_s``, the forecast, ``n_viewpoints``,
+        ``flight_length_m``, ``flight_time_s``, ``n_batteries``).
+    """
+    from mission.validate import validate_plan
+
+    plan_fn = hydra.utils.get_method(target)
+    start = time.perf_counter()
+    plan = plan_fn(proxy, intrinsics, params, seed)
+    record: dict = {"plan_time_s": time.perf_counter() - start}
+    validate_plan(plan, proxy, drone)  # whoever made it: nothing unflyable is rendered
+    target_distance = float(target_gsd_m) * intrinsics.focal_px
+    forecast = predicted_coverage(proxy, plan.viewpoints, intrinsics, target_distance, evaluation)
+    plan.info["predicted_coverage"] = {"criteria": FORECAST_CRITERIA, **forecast}
+    flight = flight_summary(plan.viewpoints, drone)
+    plan.info.update(flight)
+    record.update(forecast)
+    write_plan(plan, out_dir)
+    record.update(
+        n_viewpoints=len(plan.viewpoints),
+        flight_length_m=plan.flight_length_m,
+        flight_time_s=flight["flight_time_s"],
+        n_batteries=flight["n_batteries"],
+    )
+    log.info(
+        "plan: %d viewpoints, %.0f m flight (%.1f min, %d batteries) in %.1f s",
+        len(plan.viewpoints),
+        plan.flight_length_m,
+        flight["flight_time_s"] / 60.0,
+        flight["n_batteries"],
+        record["plan_time_s"],
+    )
+    return plan, record
+
+
+def run_cell(cfg: DictConfig, run_dir: Path, record: dict) -> None:
+    """Chain the stages for one (scene, planner, seed) cell; fill ``record`` as they complete.
+
+    ``record["stage"]`` names the stage running, so a failure is recorded where it happened.
+    """
+    from evaluate.run import evaluate_reconstruction
+    from pipeline.proxy import proxy_stage
+    from pipeline.settings import cell_settings
+    from reconstruct.pipeline import reconstruct_flight
+    from render import render_flight
+    from scene.registry import load_scene
+
+    record["stage"] = "config"
+    settings = cell_settings(cfg)  # every bad setting fails here, before the scene loads
+    record.update(settings.budget)
+    seed = int(cfg.seed)
+
+    record["stage"] = "scene"
+    scene = load_scene(cfg.scene, cache_dir=cfg.cache_dir)
+    # Everything a camera could see, hashed: two records of one scene on two machines are comparable
+    # image for image only when these agree.
+    record["scene_fingerprint"] = scene.fingerprint
+
+    record["stage"] = "proxy"
+    proxy, proxy_record = proxy_stage(
+        scene,
+        settings.intrinsics,
+        scene_cfg=cfg.scene,
+        camera_cfg=cfg.camera,
+        exploration_cfg=cfg.exploration,
+        render_cfg=cfg.render,
+        reconstruct_cfg=cfg.reconstruct,
+        cache_dir=cfg.cache_dir,
+        seed=seed,
+    )
+    record.update(proxy_record)
+
+    record["stage"] = "plan"
+    plan, plan_record = plan_stage(
+        proxy,
+        settings.intrinsics,
+        str(cfg.planner._target_),
+        settings.planner_params,
+        seed,
+        settings.drone,
+        settings.evaluation,
+        settings.target_gsd_m,
+        run_dir / "plan",
+    )
+    record.update(plan_record)
+
+    record["stage"] = "render"
+    rendered = render_flight(
+        scene, plan.viewpoints, settings.intrinsics, run_dir / "images", cfg.render, kinds=plan.kinds
+    )
+    record.update(n_images=len(plan.viewpoints), render_time_s=rendered.render_time_s)
+
+    record["stage"] = "reconstruct"
+    recon = reconstruct_flight(run_dir / "images", run_dir / "recon", cfg.reconstruct, seed)
+    record.update({k: v for k, v in recon.items() if isinstance(v, int | float | str | bool)})
+
+    record["stage"] = "evaluate"
+    record.update(evaluate_reconstruction(recon["dense_ply"], scene, settings.evaluation, run_dir / "eval"))
+    record["stage"] = "done"
+
+
+def cell_record(cfg: DictConfig) -> dict:
+    """The fields every ``metrics.json`` starts with: what the cell is."""
+    return {
+        "scene": scene_label(cfg),
+        "scene_config": cfg.scene.name,
+        "planner": cfg.planner.name,
+        "seed": int(cfg.seed),
+        "budget": str(cfg.get("budget", DEFAULT_LEVEL)),
+        "experiment": cfg.experiment.name,
+        "status": "running",
+    }
+
+
+def run_and_record(cfg: DictConfig, run_dir: Path) -> dict:
+    """Run the cell into ``run_dir`` and write its ``metrics.json``, failed or not.
+
+    Returns:
+        the record written.
+
+    Raises:
+        CellFailed: the cell failed (its record, with ``status: failed``, the failed stage and the
+            error, is written first).
+    """
+    from evaluate.record import code_revision, write_metrics
+
+    record = cell_record(cfg)
+    log.info("run directory: %s", run_dir)
+    code_revision()  # before the stages import their code
+    start, cpu_start = time.perf_counter(), cpu_seconds()
+    try:
+        run_cell(cfg, run_dir, record)
+    except Exception as exc:
+        record["cell_wall_time_s"] = time.perf_counter() - start
+        record["cell_cpu_time_s"] = cpu_seconds() - cpu_start
+        failed_stage = record.pop("stage", "?")
+        record.update(status="failed", failed_stage=failed_stage, error=f"{type(exc).__name__}: {exc}")
+        record.update(getattr(exc, "record", {}) or {})
+        write_metrics(run_dir, record, cfg=OmegaConf.to_container(cfg, resolve=True))
+        log.error("cell %s/%s failed in stage %s: %s", record["scene"], record["planner"], failed_stage, exc)
+        raise CellFailed(f"{failed_stage}: {exc}") from exc
+    record.pop("stage", None)
+    record["status"] = "ok"
+    record["cell_wall_time_s"] = time.perf_counter() - start  # proxy included unless it was cached
+    record["cell_cpu_time_s"] = cpu_seconds() - cpu_start  # process and children, every thread
+    write_metrics(run_dir, record, cfg=OmegaConf.to_container(cfg, resolve=True))
+    log.info("metrics: %s", run_dir / "metrics.json")
+    return record
+

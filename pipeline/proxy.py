@@ -1,0 +1,179 @@
+"""The proxy stage: the exploratory flight and the proxy mesh built from it, cached per scene.
+
+Flight (lawnmower aimed at the structure centre, as in the paper) -> rendered images -> pycolmap
+SfM + dense -> Poisson proxy mesh. The cache key covers everything the proxy depends on (scene,
+camera, exploration, render and reconstruction settings, seed), so sweep cells that differ only in
+the planner share one proxy; concurrent cells wait for the first builder (``pipeline.cache``).
+``reconstruct.proxy.source=ground_truth_degraded`` (NOT the paper's setting) plans on the cropped,
+decimated and noised ground truth instead, for planner work without a reconstruction.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from pathlib import Path
+
+import trimesh
+
+from pipeline.cache import cache_key, cached_entry
+from reconstruct.proxy import oriented_cloud
+from scene.base import Box, Scene
+from scene.camera import Intrinsics
+from scene.config import plain
+from scene.plan import write_plan
+from scene.proxy_mesh import PROXY_CLOUD_KEY, PROXY_VIEWS_KEY
+
+log = logging.getLogger(__name__)
+
+PROXY_FILE = "proxy.ply"
+# Voxel (m) of the exploratory cloud handed to the planners with the proxy: ~100 points per m^2.
+CLOUD_VOXEL_M = 0.1
+WORKDIR_REUSE_FLAGS = ("cached", "proxy_cached")
+PROXY_SOURCES = ("reconstruction", "ground_truth_degraded")
+
+
+def exploration_cache_key(
+    scene: Scene,
+    scene_cfg: Mapping,
+    camera_cfg: Mapping,
+    exploration_cfg: Mapping,
+    render_cfg: Mapping,
+    reconstruct_cfg: Mapping,
+    seed: int,
+) -> str:
+    """Content key of the exploratory flight + proxy: the scene's content and the stage's settings."""
+    from reconstruct.pipeline import proxy_settings
+
+    return cache_key(
+        scene.fingerprint,
+        plain(scene_cfg),
+        plain(camera_cfg),
+        plain(exploration_cfg),
+        plain(render_cfg),
+        proxy_settings(reconstruct_cfg),
+        int(seed),
+    )
+
+
+def load_proxy(entry: Path) -> trimesh.Trimesh:
+    """The proxy mesh of an exploration cache entry, carrying the exploratory flight's oriented cloud
+    (``proxy.metadata[PROXY_CLOUD_KEY]``) when the entry holds its ``recon/dense.ply``, and where its
+    registered views and images are (``PROXY_VIEWS_KEY``); see ``scene.proxy_mesh``."""
+    entry = Path(entry)
+    if not (entry / PROXY_FILE).is_file():
+        raise FileNotFoundError(f"{entry / PROXY_FILE}: no proxy (not an exploration cache entry)")
+    proxy = trimesh.load(entry / PROXY_FILE, force="mesh", process=False)
+    dense_ply = entry / "recon" / "dense.ply"
+    if dense_ply.is_file():
+        box = Box.from_points(proxy.vertices)
+        proxy.metadata[PROXY_CLOUD_KEY] = oriented_cloud(
+            dense_ply, box.expanded(1.0, 1.0, 1.0), CLOUD_VOXEL_M
+        )
+    if (entry / "recon" / "sparse").is_dir() and (entry / "images").is_dir():
+        proxy.metadata[PROXY_VIEWS_KEY] = {"recon_dir": entry / "recon", "image_dir": entry / "images"}
+    return proxy
+
+
+def build_exploration_proxy(
+    scene: Scene,
+    intrinsics: Intrinsics,
+    *,
+    scene_cfg: Mapping,
+    camera_cfg: Mapping,
+    exploration_cfg: Mapping,
+    render_cfg: Mapping,
+    reconstruct_cfg: Mapping,
+    cache_dir: str | Path,
+    seed: int,
+) -> tuple[Path, dict]:
+    """Fly, render and reconstruct the exploratory flight once; return its cache entry.
+
+    Args:
+        scene: the ground-truth scene (rendered, never shown to the planner).
+        intrinsics: the survey camera (``camera_cfg`` as an ``Intrinsics``).
+        scene_cfg, camera_cfg: the ``scene`` and ``camera`` config groups (they key the entry).
+        exploration_cfg: the exploratory flight (``conf/exploration``).
+        render_cfg: the ``render`` group.
+        reconstruct_cfg: the ``reconstruct`` group (its ``proxy`` block meshes the proxy).
+        cache_dir: the stage cache root.
+        seed: seed of the reconstruction (GNSS noise, RANSAC, mapper).
+
+    Returns:
+        (the entry folder holding ``proxy.ply``, ``plan/``, ``images/``, ``recon/``; record with the
+        exploration's image count, registered fraction, timings, ``entry`` and ``cache_hit``).
+    """
+    from planner.lawnmower import plan_exploration
+    from reconstruct.pipeline import build_proxy
+    from render import render_flight
+
+    seed = int(seed)
+
+    def build(entry: Path) -> dict:
+        plan = plan_exploration(scene.structure_bounds, intrinsics, exploration_cfg, seed)
+        write_plan(plan, entry / "plan")
+        log.info("exploration: %d viewpoints; rendering", len(plan.viewpoints))
+        rendered = render_flight(
+            scene, plan.viewpoints, intrinsics, entry / "images", render_cfg, kinds=plan.kinds
+        )
+        proxy, record = build_proxy(
+            entry / "images", entry / "recon", reconstruct_cfg, seed, roi=scene.structure_bounds
+        )
+        proxy.export(entry / PROXY_FILE)
+        return {
+            "n_images": len(plan.viewpoints),
+            "render_time_s": rendered.render_time_s,
+            "n_faces": len(proxy.faces),
+            **{k: v for k, v in record.items() if isinstance(v, int | float | str | bool)},
+        }
+
+    key = exploration_cache_key(
+        scene, scene_cfg, camera_cfg, exploration_cfg, render_cfg, reconstruct_cfg, seed
+    )
+    entry, record = cached_entry(cache_dir, "exploration", key, build)
+    # ``cached``/``proxy_cached`` say whether build_proxy reused its own work folder; a cache entry is
+    # always built fresh, so they read false even on a hit. ``cache_hit`` is the field that tells.
+    record = {k: v for k, v in record.items() if k not in WORKDIR_REUSE_FLAGS}
+    return entry, {**record, "entry": str(entry)}
+
+
+def proxy_stage(
+    scene: Scene,
+    intrinsics: Intrinsics,
+    *,
+    scene_cfg: Mapping,
+    camera_cfg: Mapping,
+    exploration_cfg: Mapping,
+    render_cfg: Mapping,
+    reconstruct_cfg: Mapping,
+    cache_dir: str | Path,
+    seed: int,
+) -> tuple[trimesh.Trimesh, dict]:
+    """The proxy the planners plan on, from ``reconstruct_cfg.proxy.source`` (arguments as
+    ``build_exploration_proxy``).
+
+    Returns:
+        (proxy mesh in world metres, the ``proxy_*`` fields of ``metrics.json``: ``proxy_source``,
+        and for a reconstruction the exploration's record, ``proxy_entry`` among them).
+    """
+    source = reconstruct_cfg["proxy"]["source"]
+    if source == "ground_truth_degraded":
+        from reconstruct.proxy import degraded_ground_truth
+
+        proxy = degraded_ground_truth(scene, reconstruct_cfg, int(seed))
+        return proxy, {"proxy_source": "ground_truth_degraded (NOT the paper's setting)"}
+    if source != "reconstruction":
+        raise ValueError(f"reconstruct.proxy.source must be one of {PROXY_SOURCES}, got {source!r}")
+    entry, record = build_exploration_proxy(
+        scene,
+        intrinsics,
+        scene_cfg=scene_cfg,
+        camera_cfg=camera_cfg,
+        exploration_cfg=exploration_cfg,
+        render_cfg=render_cfg,
+        reconstruct_cfg=reconstruct_cfg,
+        cache_dir=cache_dir,
+        seed=seed,
+    )
+    fields = {f"proxy_{k}": v for k, v in record.items() if isinstance(v, int | float | str | bool)}
+    return load_proxy(entry), {**fields, "proxy_source": "reconstruction"}

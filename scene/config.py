@@ -1,0 +1,77 @@
+"""Config nodes as plain data: the one conversion every stage applies to its Hydra config group."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+
+def plain(node):
+    """A JSON-able copy of a config node: a Hydra ``DictConfig``/``ListConfig`` resolved and
+    converted, a Mapping converted recursively (keys as strings), a list or tuple item by item, and
+    anything else as it is (None stays None)."""
+    from omegaconf import DictConfig, ListConfig, OmegaConf
+
+    if isinstance(node, DictConfig | ListConfig):
+        return OmegaConf.to_container(node, resolve=True)
+    if isinstance(node, Mapping):
+        return {str(k): plain(v) for k, v in node.items()}
+    if isinstance(node, list | tuple):
+        return type(node)(plain(v) for v in node)
+    return node
+
+
+def typed_settings(cls, node, prefix: str):
+    """Build the settings dataclass ``cls`` from a config mapping, refusing what does not fit.
+
+    Every field of ``cls`` is a key of ``node`` (a field with a default may be left out); a key
+    ``cls`` lacks is an error, and so is a value of the wrong kind. A field whose type is itself such
+    a dataclass is built from its sub-mapping. ``cls.__post_init__`` checks the ranges. Every error
+    is a ``ValueError`` that names the setting (``prefix.key``).
+    """
+    import dataclasses
+    import math
+    import typing
+
+    if not isinstance(node, Mapping):
+        raise ValueError(f"{prefix} must be a mapping, got {node!r}")
+    node = plain(node)
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(node) - set(fields))
+    if unknown:
+        raise ValueError(f"{prefix}: unknown setting(s) {unknown}; known: {sorted(fields)}")
+    values = {}
+    for name, field in fields.items():
+        where = f"{prefix}.{name}"
+        if name not in node:
+            if field.default is dataclasses.MISSING and field.default_factory is dataclasses.MISSING:
+                raise ValueError(f"{where}: missing")
+            continue
+        value, kind = node[name], hints[name]
+        if dataclasses.is_dataclass(kind):
+            values[name] = typed_settings(kind, value, where)
+            continue
+        union = typing.get_origin(kind) in (typing.Union, type(int | None))
+        options = typing.get_args(kind) if union else (kind,)
+        if value is None:
+            if type(None) not in options:
+                raise ValueError(f"{where} must be set, got null")
+            values[name] = None
+            continue
+        if bool in options:
+            if not isinstance(value, bool):
+                raise ValueError(f"{where} must be true or false, got {value!r}")
+        elif int in options:
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise ValueError(f"{where} must be an integer, got {value!r}")
+        elif float in options:
+            if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+                raise ValueError(f"{where} must be a finite number, got {value!r}")
+            value = float(value)
+        elif str in options and not isinstance(value, str):
+            raise ValueError(f"{where} must be a string, got {value!r}")
+        values[name] = value
+    try:
+        return cls(**values)
+    except ValueError as exc:
+        raise ValueError(f"{prefix}.{exc}") from exc
