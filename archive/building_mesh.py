@@ -1,6 +1,6 @@
 """A building mesh that has what users' models have and the procedural scenes lack.
 
-    python -m experiments.building_mesh --out cache/meshes/hall.glb
+    python -m archive.building_mesh --out cache/meshes/hall.glb
     python run.py scene=mesh scene.path=cache/meshes/hall.glb planner=lawnmower
 
 Flat-coloured parts with no texture at all; a hall with a hollow, sealed interior (inner faces

@@ -1,6 +1,6 @@
 """Does ``ours_plus``' evidence mean something? Its weights against the proxy's true error.
 
-    python -m experiments.evidence_check study/default_v3/tomb/ours/seed0 study/... --out results/evidence
+    python -m archive.evidence_check study/default_v3/tomb/ours/seed0 study/... --out results/evidence
 
 For each run directory (any planner: only its scene and its exploration cache entry are read), the
 proxy of that entry is sampled as the planner samples it (``n_points``, the run's seed), each sample

@@ -1,7 +1,7 @@
 """Does a planner put views inside the true building? Plan on a cell's exploration proxy, then test
 every view against the ground truth's closed volumes (the 26-ray test of ``scene.enclosure``).
 
-    python -m experiments.views_inside scene=mesh scene.path=plant.dae \\
+    python -m archive.views_inside scene=mesh scene.path=plant.dae \\
         exploration=lawnmower_orbit planner=ours
 
 Takes ``run.py``'s overrides; the exploration proxy comes from the cache (built if missing).

@@ -5,15 +5,15 @@ the ground truth cropped to the evaluation region, decimated and noised; a stand
 that needs no exploratory reconstruction) with its ``conf/planner/<name>.yaml`` settings and the
 run camera of ``conf/config.yaml``. Prints one row per (scene, planner): images, planning time, its
 largest stages, flight length, the planner's own objective before and after optimisation (Smith) or
-coverage figures, and the forecast every run records (``experiments.observations.predicted_coverage``:
+coverage figures, and the forecast every run records (``pipeline.forecast.predicted_coverage``:
 the share of the proxy's wall / roof / ground samples with >= 3 planned views within 1.3 d_t and
 60 deg of the normal). The machine is
 shared, so compare times within one run.
 
-    python experiments/bench_baselines.py                          # tomb church cathedral x all
-    python experiments/bench_baselines.py --scenes tomb --planners smith yan --json out.json
-    python experiments/bench_baselines.py --scenes tomb --planners yan --proxy cache/exploration/<key>
-    python experiments/bench_baselines.py --scenes tomb --planners ours yan --budgets low default high
+    uavplan-bench baselines                          # tomb church cathedral x all
+    uavplan-bench baselines --scenes tomb --planners smith yan --json out.json
+    uavplan-bench baselines --scenes tomb --planners yan --proxy cache/exploration/<key>
+    uavplan-bench baselines --scenes tomb --planners ours yan --budgets low default high
 
 ``--proxy`` plans on a reconstructed proxy instead: an exploration cache entry of a run of that
 scene (``proxy_entry`` in its ``metrics.json``), with the exploratory cloud Yan's confidence reads.

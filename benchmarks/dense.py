@@ -1,7 +1,7 @@
 """Dense stage before and after: one flight's aligned sparse model through variants of the dense
 settings, each timed (wall and CPU: process + children) and scored against the scene's ground truth.
 
-    python -m experiments.bench_dense study/default_v3/tomb/ours/seed0 --scene tomb \\
+    uavplan-bench dense study/default_v3/tomb/ours/seed0 --scene tomb \\
         --variant default= --variant partners3=num_partners=3 \\
         --variant small=max_image_size=768,num_partners=3 \\
         --variant chunked=fusion.max_memory_gb=2

@@ -2,16 +2,16 @@
 
 Three steps; the middle one runs on a GPU machine (no network needed there):
 
-1. here: ``python experiments/device_dense_cuda.py workspace SPARSE IMAGES /tmp/dc/ws`` cuts the
+1. here: ``python -m benchmarks.dense_cuda workspace SPARSE IMAGES /tmp/dc/ws`` cuts the
    ``--num-images`` registered views nearest (camera centre) to the ``--seed`` view out of the
    model (their 3-D points seen by >= 2 of them kept), undistorts them at ``--max-image-size`` and
    stores the images as JPEG (quality 95) so the workspace travels; ``workspace.tar`` beside it.
 2. device (H100, Python 3.12, pycolmap-cuda12 4.0.4 and its libraries carried in ``.dense_cuda``,
-   see the header of ``experiments/device_dense_cuda.sh`` for how to build it):
-   ``bash experiments/device_dense_cuda.sh dense test`` runs ``dense /tmp/ws --backend cuda --out
+   see the header of ``benchmarks/dense_cuda.sh`` for how to build it):
+   ``bash benchmarks/dense_cuda.sh dense test`` runs ``dense /tmp/ws --backend cuda --out
    $OUT`` and the ``cuda``-marked test.
 3. here: the same ``dense`` with ``--backend cpu`` on the same ``workspace.tar``, then
-   ``python experiments/device_dense_cuda.py score dense_cuda.ply dense_cpu.ply --workspace WS``
+   ``python -m benchmarks.dense_cuda score dense_cuda.ply dense_cpu.ply --workspace WS``
    scores both with the evaluation stage in the scene's region and in the region the subset sees
    (the scene region cut in x, y to the 2-98 % range of the subset's sparse points).
 

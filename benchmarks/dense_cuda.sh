@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# GPU half of experiments/device_dense_cuda.py, run on a CUDA machine (Python 3.12, no network) from
-# the repo root:  OUT=results bash experiments/device_dense_cuda.sh [STEP ...]
+# GPU half of benchmarks/dense_cuda.py, run on a CUDA machine (Python 3.12, no network) from
+# the repo root:  OUT=results bash benchmarks/dense_cuda.sh [STEP ...]
 #   dense   CUDA back-end + fusion on .dense_cuda/workspace.tar -> $OUT/dense_cuda.{ply,json}, dense.log
 #   test    the `cuda`-marked test tests/test_dense_cuda.py       -> $OUT/pytest.log
 #   render  MuJoCo EGL timing of the tomb's .render_whl/viewpoints.csv (100 views) -> $OUT/render.log
@@ -13,7 +13,7 @@
 #       libX11.so.6 libXext.so.6 libxcb.so.1 libXau.so.6 libXdmcp.so.6 libbsd.so.0 libmd.so.0 as real
 #       files from `apt-get download libsm6 libice6 libx11-6 libxext6 libxcb1 libxau6 libxdmcp6 libbsd0
 #       libmd0` + dpkg -x (Debian bookworm). libcurand.so.10 is the device's (CUDA 13 toolkit).
-#   .dense_cuda/workspace.tar  `python experiments/device_dense_cuda.py workspace ...` (12 MB)
+#   .dense_cuda/workspace.tar  `python -m benchmarks.dense_cuda workspace ...` (12 MB)
 #   .render_whl/  mujoco==4.0.0 mujoco-core==4.0.0 pyopengl==3.1.10 trimesh==5.2.0 wheels + the
 #       exploratory flight's plan/viewpoints.csv;  .gl/  the README's GL loader .debs.
 set -o pipefail
@@ -37,7 +37,7 @@ for step in ${*:-dense test}; do
   case $step in
     dense)
       setup_pycolmap && tar -xf .dense_cuda/workspace.tar -C /tmp/ws || exit 1
-      python3 experiments/device_dense_cuda.py dense /tmp/ws --backend cuda --out "$OUT" 2>&1 |
+      python3 -m benchmarks.dense_cuda dense /tmp/ws --backend cuda --out "$OUT" 2>&1 |
         tee "$OUT/dense.log" | grep -v '^[IW]2' ;;
     test)
       setup_pycolmap || exit 1
@@ -49,7 +49,7 @@ for step in ${*:-dense test}; do
         .render_whl/*.whl || exit 1
       vendor=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
       [ -f $vendor ] && export __EGL_VENDOR_LIBRARY_FILENAMES=$vendor
-      MUJOCO_GL=egl python3 experiments/device_dense_cuda.py render .render_whl/viewpoints.csv /tmp/render --views 100 2>&1 |
+      MUJOCO_GL=egl python3 -m benchmarks.dense_cuda render .render_whl/viewpoints.csv /tmp/render --views 100 2>&1 |
         tee "$OUT/render.log" | tail -4 ;;
     *) echo "unknown step $step (dense | test | render)"; exit 2 ;;
   esac

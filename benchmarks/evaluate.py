@@ -1,6 +1,6 @@
 """Benchmark of the evaluation: 5 million points against a 1-million-triangle ground truth.
 
-    python -m experiments.bench_evaluate [--points 5000000] [--grid 708] [--from-file] [--vis]
+    uavplan-bench evaluate [--points 5000000] [--grid 708] [--from-file] [--vis]
 
 The ground truth is a noisy terrain with a dome (a ``grid x grid`` vertex lattice: 708 gives
 999,698 triangles) over 40 m x 40 m; the reconstruction samples it with 2 cm noise, 3 % outliers up

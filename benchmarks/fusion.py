@@ -1,9 +1,9 @@
 """Fusion's memory on a finished dense workspace: fuse within ``fusion.max_memory_gb`` (in chunks
 of views when the flight needs more) and print wall time, CPU time and peak resident memory.
 
-    python -m experiments.bench_fusion RUN/recon/dense --out study/fusion/dense.ply [--max-memory-gb 14]
+    uavplan-bench fusion RUN/recon/dense --out study/fusion/dense.ply [--max-memory-gb 14]
 
-Quote the line it prints; score the cloud with ``python -m evaluate``.
+Quote the line it prints; score the cloud with ``uavplan-evaluate``.
 """
 
 from __future__ import annotations

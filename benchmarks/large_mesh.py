@@ -1,6 +1,6 @@
 """Benchmark of a user's large textured scan: load, render and score a 2-5 M triangle mesh.
 
-    python -m experiments.bench_large_mesh [--subdivisions 4] [--half-more] [--views 10]
+    uavplan-bench large-mesh [--subdivisions 4] [--half-more] [--views 10]
 
 The scan is made from what the repository has (no download): the shared school model (Collada,
 one texture), subdivided ``--subdivisions`` times (x4 triangles each; ``--half-more`` subdivides

@@ -1,7 +1,7 @@
 """Benchmark of the planner ``ours`` on each scene's degraded ground truth (the stand-in proxy).
 
-    python experiments/bench_planner.py                       # tomb, church, cathedral
-    python experiments/bench_planner.py --scenes tomb --set cmaes.max_generations=4
+    uavplan-bench planner                       # tomb, church, cathedral
+    uavplan-bench planner --scenes tomb --set cmaes.max_generations=4
 
 Prints, per scene: the time of every stage (wall and process CPU), objective evaluations per
 second and rays cast per second during CMA-ES, and the cost of re-scoring the viewpoint set after

@@ -1,9 +1,9 @@
 """Benchmark the reconstruction stage: per-stage wall times and peak memory for growing flights.
 
-    python experiments/bench_reconstruct.py                      # 50, 100, 200 images of the tomb
-    python experiments/bench_reconstruct.py --counts 50 100 --images DIR --out bench_out
-    python experiments/bench_reconstruct.py --counts 100 --modes default deterministic   # its cost
-    python experiments/bench_reconstruct.py --settings scored --counts 200 400 780 \
+    uavplan-bench reconstruct                      # 50, 100, 200 images of the tomb
+    uavplan-bench reconstruct --counts 50 100 --images DIR --out bench_out
+    uavplan-bench reconstruct --counts 100 --modes default deterministic   # its cost
+    uavplan-bench reconstruct --settings scored --counts 200 400 780 \
         --images study/default_v4/church/yan/default/seed0/images   # a scored flight's settings
 
 The base flight is the tomb's exploratory lawnmower at 1024x768 (rendered once into

@@ -5,8 +5,8 @@ writing, CPU seconds per image (all threads of the process: a figure that the ot
 machine disturb less than wall time) and the peak resident memory. Each (scene, back-end) cell runs
 in its own process: the back-end is fixed per process and the peak memory is then per cell.
 
-    python experiments/bench_render.py                       # tomb church cathedral, egl osmesa
-    python experiments/bench_render.py --scenes tomb --backends egl --views 100
+    uavplan-bench render                       # tomb church cathedral, egl osmesa
+    uavplan-bench render --scenes tomb --backends egl --views 100
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """SfM before and after: one rendered flight through variants of the SfM settings, each timed per
 stage (wall and CPU: process + children) and checked against the true poses.
 
-    python -m experiments.bench_sfm study/default_v3/tomb/ours/seed0/images \\
+    uavplan-bench sfm study/default_v3/tomb/ours/seed0/images \\
         --variant spatial= --variant pose_prior=matching.method=pose_prior
 
 A variant is ``NAME=KEY=VALUE,...`` over ``conf/reconstruct/default.yaml``'s ``sfm`` section
@@ -14,7 +14,7 @@ the table it prints.
 pairs and GNSS priors as they are): only the mapping settings and the prior check of the pairs
 (``matching.prior_check``, timed as matching) vary; extraction shows 0.
 
-    python -m experiments.bench_sfm RUN/images --database RUN/recon/database.db \\
+    uavplan-bench sfm RUN/images --database RUN/recon/database.db \\
         --variant default= --variant skip=mapping.global_ba_skip_redundant_points=true
 """
 
@@ -27,7 +27,7 @@ import shutil
 import sys
 from pathlib import Path
 
-from experiments.bench_dense import parse_variant
+from benchmarks.dense import parse_variant
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -1,8 +1,8 @@
 """Score any point cloud or mesh file against a scene's ground truth.
 
-    python -m evaluate recon/dense.ply --scene tomb [--out DIR]
-    python -m evaluate cloud.ply --gt-mesh gt_region.ply --region x0,y0,z0,x1,y1,z1
-    python -m evaluate cloud.ply --scene church --config full --set visualise.vmax_m=0.1
+    uavplan-evaluate recon/dense.ply --scene tomb [--out DIR]
+    uavplan-evaluate cloud.ply --gt-mesh gt_region.ply --region x0,y0,z0,x1,y1,z1
+    uavplan-evaluate cloud.ply --scene church --config full --set visualise.vmax_m=0.1
 
 Prints the metrics record (JSON) and writes ``metrics.json``, ``gt_region.ply`` and the error
 pictures into ``--out`` (default: ``<file>_eval`` beside the file). Exit status 2 on bad input.
@@ -21,7 +21,7 @@ CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="python -m evaluate",
+        prog="uavplan-evaluate",
         description="Score a reconstruction (point cloud or mesh, world metres) against a ground truth.",
     )
     parser.add_argument("file", type=Path, help="reconstruction: PLY/OBJ/OFF/STL/GLB/PCD/XYZ/PTS/NPY")

@@ -1,4 +1,4 @@
-"""The run's one flat ``metrics.json`` (the run-directory contract of DESIGN.md)."""
+"""The run's one flat ``metrics.json`` (the run-directory contract: docs/architecture.md)."""
 
 from __future__ import annotations
 

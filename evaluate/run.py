@@ -33,7 +33,7 @@ def evaluate_reconstruction(reconstruction_path: str | Path | None, scene, cfg, 
         scene: ``scene.base.Scene`` or ``evaluate.metrics.GroundTruth``.
         cfg: the ``evaluate`` config (Mapping/DictConfig/``EvaluationSettings``; None = defaults).
         out_dir: folder for ``gt_region.ply`` (the ground truth cut to the region, to re-score
-            with ``python -m evaluate FILE --gt-mesh gt_region.ply --region <eval_region>``) and the
+            with ``uavplan-evaluate FILE --gt-mesh gt_region.ply --region <eval_region>``) and the
             error pictures (``error_points.ply``, ``gt_coverage.ply``, ``error_*.png``, ``coverage_*.png``).
 
     Returns:

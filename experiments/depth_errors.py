@@ -1,6 +1,6 @@
 """How accurate are a flight's depth maps, pair by pair, against the ground truth?
 
-    python -m experiments.depth_errors study/default_v4/church/ours/default/seed0 \\
+    uavplan-study depth-errors study/default_v4/church/ours/default/seed0 \\
         study/default_v4/church/smith/default/seed0 --views 60 --out results/depth_errors/church
 
 For every run: its aligned sparse model and images are put in a fresh dense workspace, the CPU

@@ -1,6 +1,6 @@
 """The paper's figures from run directories: flight paths (Fig. 4), error views (Fig. 3), metrics vs images.
 
-    python -m experiments.figures multirun/2026-11-23_06-00-00 --out figures/
+    uavplan-study figures multirun/2026-11-23_06-00-00 --out figures/
 
 writes, each as PNG and PDF:
 ``flight_<scene>_<planner>``: the planned flight over the scene (3-D view and top view), viewpoints
@@ -614,8 +614,8 @@ def make_figures(
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Command line: ``python -m experiments.figures DIR... --out OUT``; returns the exit status."""
-    parser = argparse.ArgumentParser(prog="python -m experiments.figures", description=__doc__.split("\n")[0])
+    """Command line: ``uavplan-study figures DIR... --out OUT``; returns the exit status."""
+    parser = argparse.ArgumentParser(prog="uavplan-study figures", description=__doc__.split("\n")[0])
     parser.add_argument(
         "dirs", nargs="+", type=Path, help="run or multirun directories (searched recursively)"
     )

@@ -1,6 +1,6 @@
 """Quality per image: each planner's cells joined in budget order, and the questions a front answers.
 
-    python -m experiments.fronts results/cells/study --out results/study
+    uavplan-study fronts results/cells/study --out results/study
 
 A planner's front on a scene is its cells at each image budget (``planner.budget``: lowest ... highest),
 the seeds of a budget averaged: (images, completeness) points joined fewest images first. From the
@@ -390,7 +390,7 @@ def write_fronts(
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m experiments.fronts", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="uavplan-study fronts", description=__doc__.split("\n")[0])
     parser.add_argument("dirs", nargs="+", type=Path, help="run or record directories (searched recursively)")
     parser.add_argument("--out", type=Path, required=True, help="directory for the tables and figures")
     parser.add_argument(

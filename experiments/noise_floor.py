@@ -1,7 +1,7 @@
 """The noise floor: one cell run K times from nothing, and how far its numbers move on their own.
 
-    python -m experiments.noise_floor --repeats 5 --out study/noise -- scene=tomb planner=ours,lawnmower
-    python -m experiments.noise_floor --summarise study/noise --out results/noise_floor
+    uavplan-study noise-floor --repeats 5 --out study/noise -- scene=tomb planner=ours,lawnmower
+    uavplan-study noise-floor --summarise study/noise --out results/noise_floor
 
 Each repeat is a Hydra sweep cell of ``run.py`` with its own empty stage cache, so the exploratory
 flight, its reconstruction and the proxy are rebuilt every time, in the default (not
@@ -239,7 +239,7 @@ def write_noise_floor(run_path: Path, out_dir: Path) -> pd.DataFrame:
 def main(argv: Sequence[str] | None = None) -> int:
     """Command line; returns the exit status."""
     parser = argparse.ArgumentParser(
-        prog="python -m experiments.noise_floor", description=__doc__.split("\n")[0]
+        prog="uavplan-study noise-floor", description=__doc__.split("\n")[0]
     )
     parser.add_argument("--repeats", type=int, default=5, help="runs of each cell (default 5)")
     parser.add_argument("--out", type=Path, required=True, help="directory for the summary (and the runs)")

@@ -1,6 +1,6 @@
 """Did the plan or the reconstruction lose a surface? How closely each flight observed the ground truth.
 
-    python -m experiments.observations study/default --out results/observations
+    uavplan-study observations study/default --out results/observations
 
 For every run: the ground truth of its evaluation region (``eval/gt_region.ply``) is sampled evenly
 and each sample is classed like the completeness table (ground, roofs, walls, undersides). A view
@@ -158,10 +158,10 @@ def to_markdown(frame: pd.DataFrame, criteria: ObservationCriteria) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Command line: ``python -m experiments.observations DIR... --out OUT``; returns the exit status."""
+    """Command line: ``uavplan-study observations DIR... --out OUT``; returns the exit status."""
     defaults = ObservationCriteria()
     parser = argparse.ArgumentParser(
-        prog="python -m experiments.observations", description=__doc__.split("\n")[0]
+        prog="uavplan-study observations", description=__doc__.split("\n")[0]
     )
     parser.add_argument(
         "dirs", nargs="+", type=Path, help="run or multirun directories (searched recursively)"

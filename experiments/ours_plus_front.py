@@ -1,7 +1,7 @@
 """ours_plus' quality-vs-flight-time front: its cells at each weight of the flight-time term joined in
 weight order, with ours and the baselines (default budget) as points, one column per scene.
 
-    python -m experiments.ours_plus_front results/cells/default_v4 --out results/ours_plus
+    uavplan-study ours-plus-front results/cells/default_v4 --out results/ours_plus
 
 A cell counts as ours_plus when its planner's name starts with ``ours_plus`` (``ours_plus``,
 ``ours_plus_time0``, ``..._time12``: conf/planner/); its weight is the ``time_weight_per_pct`` its
@@ -171,7 +171,7 @@ def write_front(runs: pd.DataFrame, out_dir: str | Path) -> list[Path]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m experiments.ours_plus_front", description=__doc__.split("\n")[0]
+        prog="uavplan-study ours-plus-front", description=__doc__.split("\n")[0]
     )
     parser.add_argument("dirs", nargs="+", type=Path, help="run or record directories (searched recursively)")
     parser.add_argument("--out", type=Path, required=True, help="directory for the figure and tables")

@@ -1,6 +1,6 @@
 """Planner stability: how much a plan changes when its proxy moves by the run-to-run amount.
 
-    python -m experiments.plan_stability --proxy PROXY.ply --out OUT -- experiment=smoke scene=tomb
+    uavplan-study plan-stability --proxy PROXY.ply --out OUT -- experiment=smoke scene=tomb
 
 Two default-mode reconstructions of the same exploratory flight give proxies a few millimetres apart
 (the smoke tomb: median 3.1 mm, 90th percentile 11 mm between the two surfaces; see
@@ -157,7 +157,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Command line; returns the exit status."""
     defaults = ObservationCriteria()
     parser = argparse.ArgumentParser(
-        prog="python -m experiments.plan_stability", description=__doc__.split("\n")[0]
+        prog="uavplan-study plan-stability", description=__doc__.split("\n")[0]
     )
     parser.add_argument(
         "--proxy", type=Path, required=True, help="proxy mesh (e.g. cache/exploration/<key>/proxy.ply)"

@@ -6,8 +6,8 @@ and figures are rebuilt from (``experiments.tables`` and ``experiments.figures``
 like run directories). It lives in ``results/cells/<preset>/<scene>/<planner>/<budget>/seed<k>/``
 (budget: ``planner.budget``).
 
-    python -m experiments.record study/default_v4/tomb/yan/seed0 --preset default [--commit]
-    python -m experiments.record --queue tomb/yan/0 church/ours/1 tomb/ours/0/high --preset default \\
+    uavplan-study record study/default_v4/tomb/yan/seed0 --preset default [--commit]
+    uavplan-study record --queue tomb/yan/0 church/ours/1 tomb/ours/0/high --preset default \\
         --study study/default_v4 [--set reconstruct.keep_dense_workspace=false] [--force]
 
 ``--queue`` runs each ``scene/planner/seed[/budget]`` cell with ``run.py`` from a detached git worktree

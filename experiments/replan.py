@@ -1,6 +1,6 @@
 """Re-plan a recorded cell at one or more code revisions and compare the plans with the record.
 
-    python -m experiments.replan results/cells/study/church/smith/default/seed0 \\
+    uavplan-study replan results/cells/study/church/smith/default/seed0 \\
         --revision 00514f4 fb9b5f7
 
 Answers "does this code change alter that recorded cell?" without flying it again. The record's

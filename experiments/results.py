@@ -1,7 +1,7 @@
 """The study's published results, regenerated from the committed cell records alone.
 
-    python -m experiments.results                       # every study under results/cells/
-    python -m experiments.results study --out results   # one: results/cells/study -> results/study/
+    uavplan-study results                       # every study under results/cells/
+    uavplan-study results study --out results   # one: results/cells/study -> results/study/
 
 A study is a folder of cell records, ``results/cells/<study>/<scene>/<planner>/<budget>/seed<k>/``
 (``metrics.json`` and ``plan.json``, written and committed by ``experiments.record`` as each cell

@@ -1,4 +1,4 @@
-"""Finding and loading run directories (the run-directory contract of DESIGN.md).
+"""Finding and loading run directories (the run-directory contract: docs/architecture.md).
 
 A run directory is any folder holding a ``metrics.json``; single runs (``outputs/...``) and sweeps
 (``multirun/DATE/<scene>/<planner>/seed<N>/``) are found the same way, recursively.

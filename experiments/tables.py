@@ -1,6 +1,6 @@
 """The paper's Table I (accuracy, completeness) and Table II (images, alignment time) from run directories.
 
-    python -m experiments.tables multirun/2026-11-23_06-00-00 outputs/tomb --out tables/
+    uavplan-study tables multirun/2026-11-23_06-00-00 outputs/tomb --out tables/
 
 writes ``table1.{md,tex,csv}``, ``table2.{md,tex,csv}``, ``surfaces.{md,tex,csv}`` (completeness
 at 0.050 m per kind of surface: where a flight misses), ``tables.md`` (all three, for reading),
@@ -632,8 +632,8 @@ def write_tables(
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Command line: ``python -m experiments.tables DIR... --out OUT``; returns the exit status."""
-    parser = argparse.ArgumentParser(prog="python -m experiments.tables", description=__doc__.split("\n")[0])
+    """Command line: ``uavplan-study tables DIR... --out OUT``; returns the exit status."""
+    parser = argparse.ArgumentParser(prog="uavplan-study tables", description=__doc__.split("\n")[0])
     parser.add_argument(
         "dirs", nargs="+", type=Path, help="run or multirun directories (searched recursively)"
     )

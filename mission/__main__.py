@@ -1,7 +1,7 @@
 """Export a plan as a mission a drone flies.
 
-    python -m mission RUN_DIR --format qgc|litchi|wpml --out FILE
-    python -m mission viewpoints.csv --origin LAT,LON[,HEIGHT[,X_AXIS_HEADING]] --format wpml --out m.kmz
+    uavplan-mission RUN_DIR --format qgc|litchi|wpml --out FILE
+    uavplan-mission viewpoints.csv --origin LAT,LON[,HEIGHT[,X_AXIS_HEADING]] --format wpml --out m.kmz
 
 A run directory brings its own ``survey.origin`` and ``drone`` settings (``.hydra/config.yaml``);
 a bare ``viewpoints.csv`` needs ``--origin``. A mission longer than one battery or than a
@@ -16,7 +16,7 @@ from pathlib import Path
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m mission", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="uavplan-mission", description=__doc__.split("\n")[0])
     parser.add_argument(
         "plan", type=Path, help="a run directory (with plan/viewpoints.csv) or a viewpoints.csv"
     )

@@ -1,6 +1,6 @@
 """Export a plan to mission files: settings from the run (or the defaults), one file per flight.
 
-``export_mission`` is what ``python -m mission`` runs; the formats are ``FORMATS``' modules, each with
+``export_mission`` is what ``uavplan-mission`` runs; the formats are ``FORMATS``' modules, each with
 ``render(mission) -> list[bytes]`` (one file per flight), ``SUFFIX`` and ``MAX_WAYPOINTS`` (the
 app's own cap per file, or None).
 """

@@ -1,4 +1,4 @@
-"""Render a viewpoint file of a scene: ``python -m render SCENE viewpoints.csv OUT_DIR``.
+"""Render a viewpoint file of a scene: ``uavplan-render SCENE viewpoints.csv OUT_DIR``.
 
 SCENE is a scene config name (``conf/scene/SCENE.yaml``) or the path of a scene YAML file; the
 camera comes from ``conf/config.yaml`` unless ``--width/--height/--hfov`` are given, the render
@@ -17,7 +17,7 @@ REPO = Path(__file__).resolve().parents[1]
 def main(argv: list[str] | None = None) -> int:
     from omegaconf import OmegaConf
 
-    parser = argparse.ArgumentParser(prog="python -m render", description=__doc__)
+    parser = argparse.ArgumentParser(prog="uavplan-render", description=__doc__)
     parser.add_argument("scene", help="scene config name (conf/scene/NAME.yaml) or a scene YAML path")
     parser.add_argument("viewpoints", type=Path, help="viewpoints.csv (index,x,y,z,yaw_deg,pitch_deg[,kind])")
     parser.add_argument("out_dir", type=Path)

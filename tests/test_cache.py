@@ -114,3 +114,61 @@ def test_exploration_key_follows_the_scene_content_not_only_its_config():
             ],
         )
     assert exploration_cache_key(glob, same_a) != exploration_cache_key(glob_raw, same_a)
+
+
+# Builds the tomb's exploratory flight and proxy (smoke preset: 54 images of 480 x 360, deterministic
+# reconstruction) in the stage cache given as argv[1]; prints its entry, whether it was a hit and
+# the proxy's SHA-256.
+PROXY_CHILD = r"""
+import hashlib, json, sys
+from hydra import compose, initialize_config_dir
+from pipeline.proxy import PROXY_FILE, build_exploration_proxy
+from scene.camera import Intrinsics
+from scene.registry import load_scene
+
+cache = sys.argv[1]
+with initialize_config_dir(config_dir=sys.argv[2], version_base=None):
+    cfg = compose("config", overrides=["experiment=smoke", "scene=tomb"])
+scene = load_scene(cfg.scene, cache_dir=cache)
+entry, record = build_exploration_proxy(
+    scene, Intrinsics(**cfg.camera), scene_cfg=cfg.scene, camera_cfg=cfg.camera,
+    exploration_cfg=cfg.exploration, render_cfg=cfg.render, reconstruct_cfg=cfg.reconstruct,
+    cache_dir=cache, seed=0,
+)
+digest = hashlib.sha256((entry / PROXY_FILE).read_bytes()).hexdigest()
+out = {"entry": str(entry), "hit": record["cache_hit"], "proxy": digest, "n_images": record["n_images"]}
+print(json.dumps(out))
+"""
+
+
+def test_two_sweeps_on_one_cache_finish_with_the_results_of_one_alone(tmp_path):
+    import subprocess
+    import sys
+
+    conf = str(Path(__file__).resolve().parents[1] / "conf")
+
+    def start(cache: Path) -> subprocess.Popen:
+        return subprocess.Popen(
+            [sys.executable, "-c", PROXY_CHILD, str(cache), conf], stdout=subprocess.PIPE, text=True
+        )
+
+    def result(process: subprocess.Popen) -> dict:
+        out, _ = process.communicate(timeout=900)
+        assert process.returncode == 0
+        return json.loads(out.strip().splitlines()[-1])
+
+    shared = tmp_path / "shared"
+    first, second = start(shared), start(shared)  # at once, on one cache directory
+    together = [result(first), result(second)]
+    alone = result(start(tmp_path / "alone"))
+    # One of the two built the entry, the other waited for it and read it whole.
+    assert sorted(r["hit"] for r in together) == [False, True]
+    assert together[0]["entry"] == together[1]["entry"]
+    assert len(list((shared / "exploration").glob("*/COMPLETE.json"))) == 1
+    # Same key, same proxy, byte for byte, as the run with the cache to itself.
+    assert Path(alone["entry"]).name == Path(together[0]["entry"]).name
+    assert together[0]["proxy"] == together[1]["proxy"] == alone["proxy"]
+    assert alone["n_images"] == together[0]["n_images"] > 20
+    # Every texture both processes generated at once is whole: the same bytes as the lone run's.
+    for texture in (tmp_path / "alone" / "textures").glob("*.png"):
+        assert (shared / "textures" / texture.name).read_bytes() == texture.read_bytes(), texture.name

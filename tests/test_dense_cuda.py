@@ -16,7 +16,7 @@ import yaml
 
 pycolmap = pytest.importorskip("pycolmap")
 
-from experiments.device_dense_cuda import read_ply_xyz  # noqa: E402
+from benchmarks.dense_cuda import read_ply_xyz  # noqa: E402
 from reconstruct.dense import (  # noqa: E402
     compute_depth_maps_cpu,
     compute_depth_maps_cuda,

@@ -41,13 +41,8 @@ from reconstruct.flight import Flight, read_flight, simulate_gnss
 from reconstruct.fusion_chunks import owning_chunk, plan_chunks, read_visibility
 from reconstruct.pipeline import build_proxy, flight_content_key, proxy_flight_config, reconstruct_flight
 from reconstruct.proxy import degraded_ground_truth, oriented_cloud, poisson_proxy
-from reconstruct.sfm import (
-    COLMAP_LOCAL_BA,
-    map_reconstruction,
-    pose_prior_pairs,
-    sfm_options,
-    write_pose_priors,
-)
+from reconstruct.sfm import map_reconstruction, pose_prior_pairs, sfm_options, write_pose_priors
+from reconstruct.sfm_settings import COLMAP_LOCAL_BA
 from reconstruct.timing import stage_time
 from scene.base import Box, MeshPart, Scene
 from scene.camera import Intrinsics, cam_from_world, look_at
@@ -1124,8 +1119,8 @@ def test_image_ids_follow_the_flight_order(box_flight, box_reconstruction):
 
 
 def test_true_pose_model_puts_every_camera_at_its_true_pose(box_flight, box_reconstruction, tmp_path):
-    """experiments.bench_dense --true-poses: the copy's cameras are the simulation's (1e-9 m, 1e-4 deg)."""
-    from experiments.bench_dense import true_pose_model
+    """benchmarks.dense --true-poses: the copy's cameras are the simulation's (1e-9 m, 1e-4 deg)."""
+    from benchmarks.dense import true_pose_model
 
     out_dir, record = box_reconstruction
     assert record["position_error_median_m"] > 1e-4  # SfM's cameras are off by millimetres at least
@@ -1153,7 +1148,7 @@ def test_reference_views_cover_each_sparse_point_k_times():
 def test_bench_dense_knows_the_settings_whose_default_is_null(tmp_path):
     """A variant may set fusion.max_memory_gb or reference_views_per_point (null by default); a
     misspelt setting is refused by name before any work."""
-    from experiments.bench_dense import run_variant
+    from benchmarks.dense import run_variant
 
     overrides = ["fusion.max_memory_gb=2", "reference_views_per_point=8", "num_partner=3"]
     with pytest.raises(ValueError, match=r"unknown dense settings \['num_partner'\]"):
@@ -1164,7 +1159,7 @@ def test_bench_dense_knows_the_settings_whose_default_is_null(tmp_path):
 def test_bench_dense_cover_counts_the_views_of_a_sparse_model(tmp_path):
     """pycolmap's synthetic model (30 views, 300 points each seen by every view): its tracks are
     30 long, so K = 30 keeps every view and K = 1 keeps one view (it sees all 300 points)."""
-    from experiments.bench_dense import cover_sizes
+    from benchmarks.dense import cover_sizes
 
     _, truth = synthetic_dataset(tmp_path)
     (tmp_path / "run" / "recon" / "sparse").mkdir(parents=True)

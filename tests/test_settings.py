@@ -1,0 +1,108 @@
+"""A bad setting in any typed block is refused before the scene loads, with the setting's name."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from pipeline import cell
+from pipeline.settings import SettingsError, cell_settings
+from reconstruct.dense_settings import DenseSettings
+from reconstruct.sfm_settings import SfmSettings
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def composed(*overrides: str):
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base=None):
+        return compose(config_name="config", overrides=list(overrides))
+
+
+@pytest.mark.parametrize(
+    ("overrides", "named"),
+    [
+        (["survey.target_gsd_m=-1"], "survey.target_gsd_m"),
+        (["camera.hfov_deg=200"], "hfov_deg"),
+        (["drone.cruise_speed_m_s=0"], "drone.cruise_speed_m_s"),
+        (["planner=ours", "planner.heuristics.k_count=0"], "heuristics.k_count"),
+        (["planner=ours", "planner.cmaes.cluster_size=0"], "cmaes.cluster_size"),
+        (["planner=ours_plus", "planner.flight_time.weight_per_pct=-1"], "flight_time.weight_per_pct"),
+        (["planner=smith", "planner.front_overlap=1.5"], "front_overlap"),
+        (["planner=yan", "planner.theta_t_deg=95"], "theta_t_deg"),
+        (["planner=lawnmower", "planner.mode=spiral"], "mode"),
+        (
+            ["reconstruct.sfm.mapping.global_ba_growth_ratio=1.0"],
+            "reconstruct.sfm.mapping.global_ba_growth_ratio",
+        ),
+        (["reconstruct.sfm.extraction.max_num_features=0"], "reconstruct.sfm.extraction.max_num_features"),
+        (["reconstruct.sfm.matching.method=magic"], "reconstruct.sfm.matching.method"),
+        (["reconstruct.dense.num_partners=0"], "reconstruct.dense.num_partners"),
+        (["reconstruct.dense.fusion.max_memory_gb=-2"], "reconstruct.dense.fusion.max_memory_gb"),
+        (["reconstruct.dense.sgbm.block_size=4"], "reconstruct.dense.sgbm.block_size"),
+        (["+reconstruct.dense.num_partner=3"], "num_partner"),
+        (["reconstruct.proxy.dense.max_image_size=0"], "reconstruct.proxy.dense.max_image_size"),
+        (["evaluate.gt_sample_density_per_m2=-5"], "gt_sample_density_per_m2"),
+    ],
+)
+def test_a_bad_setting_is_refused_by_name(overrides, named):
+    with pytest.raises(SettingsError, match=named.replace(".", r"\.")):
+        cell_settings(composed(*overrides))
+
+
+def test_every_preset_passes():
+    for preset in ("default", "smoke", "paper", "budgets", "ablation", "ours_plus_front"):
+        for planner in ("ours", "ours_plus", "smith", "yan", "lawnmower"):
+            cell_settings(composed(f"experiment={preset}", f"planner={planner}"))
+
+
+def test_the_refusal_comes_before_the_scene_loads(monkeypatch, tmp_path):
+    def no_scene(*args, **kwargs):
+        raise AssertionError("the scene was loaded before the settings were checked")
+
+    monkeypatch.setattr("scene.registry.load_scene", no_scene)
+    record = cell.cell_record(composed())
+    with pytest.raises(SettingsError, match=r"reconstruct\.dense\.num_partners must be >= 1, got 0"):
+        cell.run_cell(composed("reconstruct.dense.num_partners=0"), tmp_path, record)
+    assert record["stage"] == "config"
+
+
+def test_a_refused_cell_exits_with_one_line_and_a_failed_record(tmp_path):
+    out = subprocess.run(
+        [
+            sys.executable,
+            "run.py",
+            "reconstruct.sfm.mapping.local_ba_num_images=0",
+            f"hydra.run.dir={tmp_path}",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode == 1
+    lines = [line for line in out.stderr.splitlines() if line.startswith("error:")]
+    assert lines == [
+        "error: cell tomb/ours failed in stage config: reconstruct.sfm.mapping.local_ba_num_images must be "
+        ">= 1, got 0 (traceback: HYDRA_FULL_ERROR=1)"
+    ]
+    record = json.loads((tmp_path / "metrics.json").read_text())
+    assert (record["status"], record["failed_stage"]) == ("failed", "config")
+    assert "scene_fingerprint" not in record  # the scene never loaded
+
+
+def test_typed_blocks_keep_the_yaml_values():
+    cfg = composed()
+    dense = DenseSettings.from_config(cfg.reconstruct.dense)
+    sfm = SfmSettings.from_config(cfg.reconstruct.sfm)
+    assert (dense.num_partners, dense.fusion.min_num_pixels, dense.sgbm.block_size) == (4, 3, 5)
+    assert dense.fusion.max_memory_gb is None
+    assert (sfm.mapping.local_ba_num_images, sfm.matching.max_ratio, sfm.extraction.max_num_features) == (
+        4,
+        0.8,
+        4096,
+    )
