@@ -102,15 +102,20 @@ def to_markdown(frame: pd.DataFrame) -> str:
         "| :-- | --: | --: | --: | --: | --: | --: | --: | --: | --: | --: | --: |",
     ]
     for r in frame.itertuples():
-        photo = getattr(r, "spearman_photo", float("nan"))
-        lines.append(
-            f"| {scene_name(r.scene)} | {r.n_samples} | {100 * r.share_unsure:.1f} % "
-            f"| {r.spearman_weight:.3f} | {r.spearman_weight_cloud_only:.3f} "
-            f"| {r.spearman_gap:.3f} | {r.spearman_support:.3f} | {r.spearman_normal:.3f} | {photo:.3f} "
-            f"| {r.spearman_photo_ncc_scored:.3f} ({100 * r.share_photo_scored:.0f} %) "
-            f"| {100 * r.median_error_sure_m:.1f} / {100 * r.median_error_unsure_m:.1f} "
-            f"| {100 * r.share_error_over_10cm:.1f} % |"
+        correlations = (
+            r.spearman_weight,
+            r.spearman_weight_cloud_only,
+            r.spearman_gap,
+            r.spearman_support,
+            r.spearman_normal,
+            getattr(r, "spearman_photo", float("nan")),
         )
+        cells = [scene_name(r.scene), str(r.n_samples), f"{100 * r.share_unsure:.1f} %"]
+        cells += [f"{c:.3f}" for c in correlations]
+        cells.append(f"{r.spearman_photo_ncc_scored:.3f} ({100 * r.share_photo_scored:.0f} %)")
+        cells.append(f"{100 * r.median_error_sure_m:.1f} / {100 * r.median_error_unsure_m:.1f}")
+        cells.append(f"{100 * r.share_error_over_10cm:.1f} %")
+        lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 

@@ -25,7 +25,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from drone.model import DroneSettings
     from mission.validate import validate_plan
-    from pipeline.proxy import proxy_stage
+    from pipeline.proxy import ProxyInputs, proxy_stage
     from pipeline.settings import planner_setup
     from scene.camera import Intrinsics
     from scene.enclosure import enclosed_positions, raycasting_scene
@@ -37,17 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     params, _ = planner_setup(cfg)
     scene = load_scene(cfg.scene, cache_dir=cfg.cache_dir)
     intrinsics = Intrinsics(**cfg.camera)
-    proxy, _ = proxy_stage(
-        scene,
-        intrinsics,
-        scene_cfg=cfg.scene,
-        camera_cfg=cfg.camera,
-        exploration_cfg=cfg.exploration,
-        render_cfg=cfg.render,
-        reconstruct_cfg=cfg.reconstruct,
-        cache_dir=cfg.cache_dir,
-        seed=cfg.seed,
-    )
+    proxy, _ = proxy_stage(scene, intrinsics, ProxyInputs.of(cfg))
     start = time.perf_counter()
     plan = hydra.utils.get_method(cfg.planner._target_)(proxy, intrinsics, params, cfg.seed)
     plan_s = time.perf_counter() - start

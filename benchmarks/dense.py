@@ -23,10 +23,11 @@ the cloud's error that the SfM cameras cause, the rest is the dense stage's own.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from pathlib import Path
+
+from benchmarks import write_records
 
 ROOT = Path(__file__).resolve().parents[1]
 REPORTED = ("acc90_m", "comp_050", "comp_050_walls", "comp_050_roofs", "comp_050_ground")
@@ -183,9 +184,7 @@ def main(argv: list[str] | None = None) -> int:
             + " ".join(f"{record[k] if record[k] is not None else float('nan'):>15.4g}" for k in REPORTED),
             flush=True,
         )
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "bench_dense.json").write_text(json.dumps(rows, indent=1))
-    print(f"records: {args.out / 'bench_dense.json'}")
+    write_records(args.out, "bench_dense", rows)
     return 0
 
 

@@ -21,12 +21,12 @@ pairs and GNSS priors as they are): only the mapping settings and the prior chec
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import sys
 from pathlib import Path
 
+from benchmarks import write_records
 from benchmarks.dense import parse_variant
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -134,9 +134,7 @@ def main(argv: list[str] | None = None) -> int:
             + f" {r['rotation_error_max_deg']:>7.1f}",
             flush=True,
         )
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "bench_sfm.json").write_text(json.dumps(rows, indent=1))
-    print(f"records: {args.out / 'bench_sfm.json'}")
+    write_records(args.out, "bench_sfm", rows)
     return 0
 
 

@@ -22,7 +22,6 @@ combined map) and ``summary.md`` (per run, per triangulation-angle bin).
 
 from __future__ import annotations
 
-import argparse
 import logging
 import shutil
 import sys
@@ -36,7 +35,7 @@ import pandas as pd
 import trimesh
 
 from experiments.observations import GT_REGION_FILE, SPARSE_DIR
-from experiments.runs import RunDirectoryError, read_run_config
+from experiments.runs import RunDirectoryError, read_run_config, tool_parser
 from reconstruct.dense import (
     View,
     consistent_depth,
@@ -205,9 +204,7 @@ def summarise(pairs: pd.DataFrame) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = tool_parser("uavplan-study depth-errors", __doc__)
     parser.add_argument("runs", nargs="+", type=Path, help="run directories (a cell's output)")
     parser.add_argument(
         "--views", type=int, default=60, help="reference views per run, evenly spread (0: all)"

@@ -14,7 +14,6 @@ ground truth coloured covered/missed (``eval/coverage_<view>.png``);
 
 from __future__ import annotations
 
-import argparse
 import logging
 import sys
 from collections.abc import Sequence
@@ -45,6 +44,7 @@ from experiments.runs import (  # noqa: E402
     runs_frame,
     scene_name,
     scene_sort_key,
+    tool_parser,
 )
 from planner.budget import DEFAULT_LEVEL, level_rank  # noqa: E402
 from scene.camera import forward_vectors  # noqa: E402
@@ -70,22 +70,23 @@ PANEL_CELL_IN = 3.2
 COLOUR_BAR_LABEL = "error colour bar"  # the label of an error panel's colour bar axes
 
 
+def _style(name: str, fixed: dict, spare: Sequence[str], known: Sequence[str]) -> str:
+    """``fixed[name]``, or for a name without one the spare styles in order of ``known``."""
+    if name in fixed:
+        return fixed[name]
+    others = [k for k in known if k not in fixed]
+    index = others.index(name) if name in others else len(others)
+    return spare[index % len(spare)]
+
+
 def kind_colour(kind: str, known: Sequence[str] = ()) -> str:
     """Colour of a viewpoint kind; kinds without a fixed colour take spare ones in order of ``known``."""
-    if kind in KIND_COLOURS:
-        return KIND_COLOURS[kind]
-    others = [k for k in known if k not in KIND_COLOURS]
-    index = others.index(kind) if kind in others else len(others)
-    return _SPARE_COLOURS[index % len(_SPARE_COLOURS)]
+    return _style(kind, KIND_COLOURS, _SPARE_COLOURS, known)
 
 
 def method_marker(planner: str, known: Sequence[str] = ()) -> str:
     """Scatter marker of a planner (``ours`` a circle, ``smith`` a square, ...)."""
-    if planner in METHOD_MARKERS:
-        return METHOD_MARKERS[planner]
-    others = [p for p in known if p not in METHOD_MARKERS]
-    index = others.index(planner) if planner in others else len(others)
-    return _SPARE_MARKERS[index % len(_SPARE_MARKERS)]
+    return _style(planner, METHOD_MARKERS, _SPARE_MARKERS, known)
 
 
 def decimate_mesh(mesh, max_faces: int):
@@ -615,11 +616,7 @@ def make_figures(
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Command line: ``uavplan-study figures DIR... --out OUT``; returns the exit status."""
-    parser = argparse.ArgumentParser(prog="uavplan-study figures", description=__doc__.split("\n")[0])
-    parser.add_argument(
-        "dirs", nargs="+", type=Path, help="run or multirun directories (searched recursively)"
-    )
-    parser.add_argument("--out", type=Path, required=True, help="directory for the figures")
+    parser = tool_parser("uavplan-study figures", __doc__, "directory for the figures")
     parser.add_argument("--planners", nargs="+", help="planners whose flight paths to draw (default: all)")
     parser.add_argument(
         "--mesh",

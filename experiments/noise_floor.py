@@ -238,9 +238,7 @@ def write_noise_floor(run_path: Path, out_dir: Path) -> pd.DataFrame:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Command line; returns the exit status."""
-    parser = argparse.ArgumentParser(
-        prog="uavplan-study noise-floor", description=__doc__.split("\n")[0]
-    )
+    parser = argparse.ArgumentParser(prog="uavplan-study noise-floor", description=__doc__.split("\n")[0])
     parser.add_argument("--repeats", type=int, default=5, help="runs of each cell (default 5)")
     parser.add_argument("--out", type=Path, required=True, help="directory for the summary (and the runs)")
     parser.add_argument(

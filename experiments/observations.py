@@ -18,7 +18,6 @@ Writes ``observations.md`` (one table), ``observations.csv`` (one row per run an
 
 from __future__ import annotations
 
-import argparse
 import logging
 import sys
 from collections.abc import Sequence
@@ -38,6 +37,7 @@ from experiments.runs import (
     read_run_config,
     run_intrinsics,
     scene_name,
+    tool_parser,
 )
 from pipeline.forecast import ObservationCriteria, observation_shares
 from scene.cameras_file import CAMERAS_FILE, read_cameras
@@ -48,6 +48,8 @@ log = logging.getLogger(__name__)
 GT_REGION_FILE = Path("eval") / "gt_region.ply"
 IMAGES_DIR = Path("images")
 SPARSE_DIR = Path("recon") / "sparse"
+
+
 def registered_views(run_dir: Path) -> tuple[np.ndarray, int, bool]:
     """The rendered views of a run that SfM registered.
 
@@ -160,13 +162,7 @@ def to_markdown(frame: pd.DataFrame, criteria: ObservationCriteria) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     """Command line: ``uavplan-study observations DIR... --out OUT``; returns the exit status."""
     defaults = ObservationCriteria()
-    parser = argparse.ArgumentParser(
-        prog="uavplan-study observations", description=__doc__.split("\n")[0]
-    )
-    parser.add_argument(
-        "dirs", nargs="+", type=Path, help="run or multirun directories (searched recursively)"
-    )
-    parser.add_argument("--out", type=Path, required=True, help="directory for observations.md and .csv")
+    parser = tool_parser("uavplan-study observations", __doc__, "directory for observations.md and .csv")
     parser.add_argument("--min-views", type=int, default=defaults.min_views)
     parser.add_argument("--max-distance-factor", type=float, default=defaults.max_distance_factor)
     parser.add_argument("--max-incidence-deg", type=float, default=defaults.max_incidence_deg)

@@ -170,9 +170,7 @@ def write_front(runs: pd.DataFrame, out_dir: str | Path) -> list[Path]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="uavplan-study ours-plus-front", description=__doc__.split("\n")[0]
-    )
+    parser = argparse.ArgumentParser(prog="uavplan-study ours-plus-front", description=__doc__.split("\n")[0])
     parser.add_argument("dirs", nargs="+", type=Path, help="run or record directories (searched recursively)")
     parser.add_argument("--out", type=Path, required=True, help="directory for the figure and tables")
     args = parser.parse_args(argv)

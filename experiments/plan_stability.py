@@ -20,7 +20,6 @@ and ``plan_stability.csv`` (one row per plan) into ``--out``.
 
 from __future__ import annotations
 
-import argparse
 import logging
 import sys
 import time
@@ -34,7 +33,7 @@ from scipy.spatial import cKDTree
 
 from evaluate.metrics import SURFACE_CLASSES
 from evaluate.settings import EvaluationSettings
-from experiments.runs import method_name
+from experiments.runs import method_name, tool_parser
 from pipeline.forecast import ObservationCriteria, observation_shares
 from scene.io import write_text_atomic
 
@@ -156,9 +155,7 @@ def to_markdown(frame: pd.DataFrame, proxy_path: str, sigma_mm: float, criteria:
 def main(argv: Sequence[str] | None = None) -> int:
     """Command line; returns the exit status."""
     defaults = ObservationCriteria()
-    parser = argparse.ArgumentParser(
-        prog="uavplan-study plan-stability", description=__doc__.split("\n")[0]
-    )
+    parser = tool_parser("uavplan-study plan-stability", __doc__)
     parser.add_argument(
         "--proxy", type=Path, required=True, help="proxy mesh (e.g. cache/exploration/<key>/proxy.ply)"
     )

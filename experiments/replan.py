@@ -65,14 +65,11 @@ from scene.registry import load_scene
 
 try:  # the pipeline package and the drone model
     from drone.model import DroneSettings, flight_summary
-    from pipeline.proxy import proxy_stage
+    from pipeline.proxy import ProxyInputs, proxy_stage
     from pipeline.settings import planner_setup
 
     def obtain_proxy(scene, intrinsics, cfg, record):
-        proxy, fields = proxy_stage(
-            scene, intrinsics, scene_cfg=cfg.scene, camera_cfg=cfg.camera, exploration_cfg=cfg.exploration,
-            render_cfg=cfg.render, reconstruct_cfg=cfg.reconstruct, cache_dir=cfg.cache_dir, seed=cfg.seed,
-        )
+        proxy, fields = proxy_stage(scene, intrinsics, ProxyInputs.of(cfg))
         record.update(fields)
         return proxy
 except ImportError:  # a revision from before them: run.py held the stages, mission/ the drone

@@ -6,6 +6,7 @@ A run directory is any folder holding a ``metrics.json``; single runs (``outputs
 
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import math
@@ -401,3 +402,15 @@ def _proxy_mesh(run: Run):
         path = recorded_path(Run(run.run_dir, plan), *PROXY_PATH_KEYS, file_name=PROXY_FILE)
     mesh = _load_mesh_file(path) if path is not None else None
     return (mesh, "proxy") if mesh is not None else None
+
+
+def tool_parser(prog: str, doc: str, out_help: str | None = None) -> argparse.ArgumentParser:
+    """The command line of a study tool: ``prog``, its module docstring's first line as the
+    description and, with ``out_help``, the run directories (``DIR...``) and ``--out``."""
+    parser = argparse.ArgumentParser(prog=prog, description=doc.split("\n")[0])
+    if out_help is not None:
+        parser.add_argument(
+            "dirs", nargs="+", type=Path, help="run or multirun directories (searched recursively)"
+        )
+        parser.add_argument("--out", type=Path, required=True, help=out_help)
+    return parser

@@ -16,7 +16,6 @@ moves by that much on its own. The tables then say which floor they used.
 
 from __future__ import annotations
 
-import argparse
 import io
 import logging
 import math
@@ -37,6 +36,7 @@ from experiments.runs import (
     runs_frame,
     scene_name,
     scene_sort_key,
+    tool_parser,
 )
 from planner.budget import DEFAULT_LEVEL, level_rank
 from scene.io import write_text_atomic
@@ -531,7 +531,7 @@ UNRECORDED_REVISION = "unrecorded"
 
 
 def _cell_names(runs: pd.DataFrame, name_seeds: bool) -> str:
-    """"Tomb Ours seeds 0-2, Church Smith et al. seeds 0/2, Church Ours seed 1": the cells of ``runs``
+    """ "Tomb Ours seeds 0-2, Church Smith et al. seeds 0/2, Church Ours seed 1": the cells of ``runs``
     in the order they come, seeds merged per scene and method (a run of consecutive seeds as a range)."""
     names: dict[str, list[int]] = {}
     for scene, method, seed in zip(runs["scene"], runs["method"], runs["seed"], strict=True):
@@ -633,11 +633,7 @@ def write_tables(
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Command line: ``uavplan-study tables DIR... --out OUT``; returns the exit status."""
-    parser = argparse.ArgumentParser(prog="uavplan-study tables", description=__doc__.split("\n")[0])
-    parser.add_argument(
-        "dirs", nargs="+", type=Path, help="run or multirun directories (searched recursively)"
-    )
-    parser.add_argument("--out", type=Path, required=True, help="directory for the tables")
+    parser = tool_parser("uavplan-study tables", __doc__, "directory for the tables")
     parser.add_argument(
         "--noise-floor",
         type=Path,

@@ -106,7 +106,7 @@ def run_cell(cfg: DictConfig, run_dir: Path, record: dict) -> None:
     ``record["stage"]`` names the stage running, so a failure is recorded where it happened.
     """
     from evaluate.run import evaluate_reconstruction
-    from pipeline.proxy import proxy_stage
+    from pipeline.proxy import ProxyInputs, proxy_stage
     from pipeline.settings import cell_settings
     from reconstruct.pipeline import reconstruct_flight
     from render import render_flight
@@ -124,17 +124,7 @@ def run_cell(cfg: DictConfig, run_dir: Path, record: dict) -> None:
     record["scene_fingerprint"] = scene.fingerprint
 
     record["stage"] = "proxy"
-    proxy, proxy_record = proxy_stage(
-        scene,
-        settings.intrinsics,
-        scene_cfg=cfg.scene,
-        camera_cfg=cfg.camera,
-        exploration_cfg=cfg.exploration,
-        render_cfg=cfg.render,
-        reconstruct_cfg=cfg.reconstruct,
-        cache_dir=cfg.cache_dir,
-        seed=seed,
-    )
+    proxy, proxy_record = proxy_stage(scene, settings.intrinsics, ProxyInputs.of(cfg))
     record.update(proxy_record)
 
     record["stage"] = "plan"

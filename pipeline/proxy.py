@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 import trimesh
@@ -33,26 +34,52 @@ WORKDIR_REUSE_FLAGS = ("cached", "proxy_cached")
 PROXY_SOURCES = ("reconstruction", "ground_truth_degraded")
 
 
-def exploration_cache_key(
-    scene: Scene,
-    scene_cfg: Mapping,
-    camera_cfg: Mapping,
-    exploration_cfg: Mapping,
-    render_cfg: Mapping,
-    reconstruct_cfg: Mapping,
-    seed: int,
-) -> str:
+@dataclass(frozen=True)
+class ProxyInputs:
+    """The config groups the proxy stage reads (all but ``cache_dir`` key its cache entry).
+
+    Attributes:
+        scene, camera, exploration, render, reconstruct: the ``scene``, ``camera``,
+            ``exploration`` (the exploratory flight), ``render`` and ``reconstruct`` groups (its
+            ``proxy`` block meshes the proxy).
+        cache_dir: the stage cache root.
+        seed: seed of the reconstruction (GNSS noise, RANSAC, mapper).
+    """
+
+    scene: Mapping
+    camera: Mapping
+    exploration: Mapping
+    render: Mapping
+    reconstruct: Mapping
+    cache_dir: str
+    seed: int
+
+    @classmethod
+    def of(cls, cfg: Mapping) -> ProxyInputs:
+        """The proxy stage's groups of a composed run config."""
+        return cls(
+            cfg["scene"],
+            cfg["camera"],
+            cfg["exploration"],
+            cfg["render"],
+            cfg["reconstruct"],
+            str(cfg["cache_dir"]),
+            int(cfg["seed"]),
+        )
+
+
+def exploration_cache_key(scene: Scene, inputs: ProxyInputs) -> str:
     """Content key of the exploratory flight + proxy: the scene's content and the stage's settings."""
     from reconstruct.pipeline import proxy_settings
 
     return cache_key(
         scene.fingerprint,
-        plain(scene_cfg),
-        plain(camera_cfg),
-        plain(exploration_cfg),
-        plain(render_cfg),
-        proxy_settings(reconstruct_cfg),
-        int(seed),
+        plain(inputs.scene),
+        plain(inputs.camera),
+        plain(inputs.exploration),
+        plain(inputs.render),
+        proxy_settings(inputs.reconstruct),
+        int(inputs.seed),
     )
 
 
@@ -75,29 +102,13 @@ def load_proxy(entry: Path) -> trimesh.Trimesh:
     return proxy
 
 
-def build_exploration_proxy(
-    scene: Scene,
-    intrinsics: Intrinsics,
-    *,
-    scene_cfg: Mapping,
-    camera_cfg: Mapping,
-    exploration_cfg: Mapping,
-    render_cfg: Mapping,
-    reconstruct_cfg: Mapping,
-    cache_dir: str | Path,
-    seed: int,
-) -> tuple[Path, dict]:
+def build_exploration_proxy(scene: Scene, intrinsics: Intrinsics, inputs: ProxyInputs) -> tuple[Path, dict]:
     """Fly, render and reconstruct the exploratory flight once; return its cache entry.
 
     Args:
         scene: the ground-truth scene (rendered, never shown to the planner).
-        intrinsics: the survey camera (``camera_cfg`` as an ``Intrinsics``).
-        scene_cfg, camera_cfg: the ``scene`` and ``camera`` config groups (they key the entry).
-        exploration_cfg: the exploratory flight (``conf/exploration``).
-        render_cfg: the ``render`` group.
-        reconstruct_cfg: the ``reconstruct`` group (its ``proxy`` block meshes the proxy).
-        cache_dir: the stage cache root.
-        seed: seed of the reconstruction (GNSS noise, RANSAC, mapper).
+        intrinsics: the survey camera (``inputs.camera`` as an ``Intrinsics``).
+        inputs: the stage's config groups.
 
     Returns:
         (the entry folder holding ``proxy.ply``, ``plan/``, ``images/``, ``recon/``; record with the
@@ -107,17 +118,17 @@ def build_exploration_proxy(
     from reconstruct.pipeline import build_proxy
     from render import render_flight
 
-    seed = int(seed)
+    seed = int(inputs.seed)
 
     def build(entry: Path) -> dict:
-        plan = plan_exploration(scene.structure_bounds, intrinsics, exploration_cfg, seed)
+        plan = plan_exploration(scene.structure_bounds, intrinsics, inputs.exploration, seed)
         write_plan(plan, entry / "plan")
         log.info("exploration: %d viewpoints; rendering", len(plan.viewpoints))
         rendered = render_flight(
-            scene, plan.viewpoints, intrinsics, entry / "images", render_cfg, kinds=plan.kinds
+            scene, plan.viewpoints, intrinsics, entry / "images", inputs.render, kinds=plan.kinds
         )
         proxy, record = build_proxy(
-            entry / "images", entry / "recon", reconstruct_cfg, seed, roi=scene.structure_bounds
+            entry / "images", entry / "recon", inputs.reconstruct, seed, roi=scene.structure_bounds
         )
         proxy.export(entry / PROXY_FILE)
         return {
@@ -127,53 +138,30 @@ def build_exploration_proxy(
             **{k: v for k, v in record.items() if isinstance(v, int | float | str | bool)},
         }
 
-    key = exploration_cache_key(
-        scene, scene_cfg, camera_cfg, exploration_cfg, render_cfg, reconstruct_cfg, seed
-    )
-    entry, record = cached_entry(cache_dir, "exploration", key, build)
+    key = exploration_cache_key(scene, inputs)
+    entry, record = cached_entry(inputs.cache_dir, "exploration", key, build)
     # ``cached``/``proxy_cached`` say whether build_proxy reused its own work folder; a cache entry is
     # always built fresh, so they read false even on a hit. ``cache_hit`` is the field that tells.
     record = {k: v for k, v in record.items() if k not in WORKDIR_REUSE_FLAGS}
     return entry, {**record, "entry": str(entry)}
 
 
-def proxy_stage(
-    scene: Scene,
-    intrinsics: Intrinsics,
-    *,
-    scene_cfg: Mapping,
-    camera_cfg: Mapping,
-    exploration_cfg: Mapping,
-    render_cfg: Mapping,
-    reconstruct_cfg: Mapping,
-    cache_dir: str | Path,
-    seed: int,
-) -> tuple[trimesh.Trimesh, dict]:
-    """The proxy the planners plan on, from ``reconstruct_cfg.proxy.source`` (arguments as
+def proxy_stage(scene: Scene, intrinsics: Intrinsics, inputs: ProxyInputs) -> tuple[trimesh.Trimesh, dict]:
+    """The proxy the planners plan on, from ``reconstruct.proxy.source`` (arguments as
     ``build_exploration_proxy``).
 
     Returns:
         (proxy mesh in world metres, the ``proxy_*`` fields of ``metrics.json``: ``proxy_source``,
         and for a reconstruction the exploration's record, ``proxy_entry`` among them).
     """
-    source = reconstruct_cfg["proxy"]["source"]
+    source = inputs.reconstruct["proxy"]["source"]
     if source == "ground_truth_degraded":
         from reconstruct.proxy import degraded_ground_truth
 
-        proxy = degraded_ground_truth(scene, reconstruct_cfg, int(seed))
+        proxy = degraded_ground_truth(scene, inputs.reconstruct, int(inputs.seed))
         return proxy, {"proxy_source": "ground_truth_degraded (NOT the paper's setting)"}
     if source != "reconstruction":
         raise ValueError(f"reconstruct.proxy.source must be one of {PROXY_SOURCES}, got {source!r}")
-    entry, record = build_exploration_proxy(
-        scene,
-        intrinsics,
-        scene_cfg=scene_cfg,
-        camera_cfg=camera_cfg,
-        exploration_cfg=exploration_cfg,
-        render_cfg=render_cfg,
-        reconstruct_cfg=reconstruct_cfg,
-        cache_dir=cache_dir,
-        seed=seed,
-    )
+    entry, record = build_exploration_proxy(scene, intrinsics, inputs)
     fields = {f"proxy_{k}": v for k, v in record.items() if isinstance(v, int | float | str | bool)}
     return load_proxy(entry), {**fields, "proxy_source": "reconstruction"}

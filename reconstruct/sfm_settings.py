@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from scene.config import typed_settings
+from scene.config import setting, typed_settings
 
 MATCHING_METHODS = ("auto", "exhaustive", "spatial", "pose_prior", "sequential")
 MAPPING_METHODS = ("incremental", "global")
@@ -21,105 +21,66 @@ COLMAP_GLOBAL_BA_MAX_REFINEMENTS = 5
 COLMAP_LOCAL_BA = {"local_ba_num_images": 6, "local_ba_max_iterations": 25, "local_ba_max_refinements": 2}
 
 
-def _at_least(name: str, value, low) -> None:
-    if value < low:
-        raise ValueError(f"{name} must be >= {low}, got {value}")
-
-
 @dataclass(frozen=True)
 class ExtractionSettings:
     """SIFT extraction (px, counts)."""
 
-    max_image_size: int
-    max_num_features: int
-    first_octave: int
-
-    def __post_init__(self) -> None:
-        _at_least("max_image_size", self.max_image_size, 1)
-        _at_least("max_num_features", self.max_num_features, 1)
+    max_image_size: int = setting(low=1)
+    max_num_features: int = setting(low=1)
+    first_octave: int = setting()
 
 
 @dataclass(frozen=True)
 class MatchingSettings:
     """Pair selection and matching (counts, metres, degrees)."""
 
-    method: str
-    exhaustive_max_images: int
-    spatial_max_num_neighbors: int
-    spatial_max_distance_m: float
-    pose_prior_max_neighbors: int
-    pose_prior_max_distance_m: float
-    pose_prior_max_axis_angle_deg: float
-    sequential_overlap: int
-    max_ratio: float
-    guided_matching: bool
-    prior_check: dict | None = None  # reconstruct.pair_check.PairCheckSettings checks it
-
-    def __post_init__(self) -> None:
-        if self.method not in MATCHING_METHODS:
-            raise ValueError(f"method must be one of {MATCHING_METHODS}, got {self.method!r}")
-        for name in ("exhaustive_max_images", "spatial_max_num_neighbors", "pose_prior_max_neighbors"):
-            _at_least(name, getattr(self, name), 1)
-        _at_least("sequential_overlap", self.sequential_overlap, 1)
-        for name in ("spatial_max_distance_m", "pose_prior_max_distance_m"):
-            _at_least(name, getattr(self, name), 0)
-        if not 0 < self.pose_prior_max_axis_angle_deg <= 180:
-            raise ValueError(
-                "pose_prior_max_axis_angle_deg must lie in (0, 180], "
-                f"got {self.pose_prior_max_axis_angle_deg}"
-            )
-        if not 0 < self.max_ratio <= 1:
-            raise ValueError(f"max_ratio must lie in (0, 1], got {self.max_ratio}")
+    method: str = setting(choices=MATCHING_METHODS)
+    exhaustive_max_images: int = setting(low=1)
+    spatial_max_num_neighbors: int = setting(low=1)
+    spatial_max_distance_m: float = setting(low=0)  # 0: no distance cut-off
+    pose_prior_max_neighbors: int = setting(low=1)
+    pose_prior_max_distance_m: float = setting(low=0)
+    pose_prior_max_axis_angle_deg: float = setting(above=0, high=180)
+    sequential_overlap: int = setting(low=1)
+    max_ratio: float = setting(above=0, high=1)
+    guided_matching: bool = setting()
+    prior_check: dict | None = setting(None)  # reconstruct.pair_check.PairCheckSettings checks it
 
 
 @dataclass(frozen=True)
 class MappingSettings:
     """The mapper and its bundle adjustments (counts, ratios)."""
 
-    method: str
-    refine_focal_length: bool
-    refine_principal_point: bool
-    refine_extra_params: bool
-    use_prior_position: bool
-    robust_loss_on_prior_position: bool
-    min_model_size: int
-    global_ba_growth_ratio: float
-    global_ba_max_iterations: int
-    global_ba_skip_redundant_points: bool
-    global_prior_ba: bool
-    global_prior_ba_max_iterations: int
-    global_ba_max_refinements: int = COLMAP_GLOBAL_BA_MAX_REFINEMENTS
-    local_ba_num_images: int = COLMAP_LOCAL_BA["local_ba_num_images"]
-    local_ba_max_iterations: int = COLMAP_LOCAL_BA["local_ba_max_iterations"]
-    local_ba_max_refinements: int = COLMAP_LOCAL_BA["local_ba_max_refinements"]
-
-    def __post_init__(self) -> None:
-        if self.method not in MAPPING_METHODS:
-            raise ValueError(f"method must be one of {MAPPING_METHODS}, got {self.method!r}")
-        if self.global_ba_growth_ratio <= 1.0:
-            raise ValueError(f"global_ba_growth_ratio must be > 1, got {self.global_ba_growth_ratio}")
-        _at_least("min_model_size", self.min_model_size, 2)
-        for name in (
-            "global_ba_max_iterations",
-            "global_prior_ba_max_iterations",
-            "global_ba_max_refinements",
-            *COLMAP_LOCAL_BA,
-        ):
-            _at_least(name, getattr(self, name), 1)
+    method: str = setting(choices=MAPPING_METHODS)
+    refine_focal_length: bool = setting()
+    refine_principal_point: bool = setting()
+    refine_extra_params: bool = setting()
+    use_prior_position: bool = setting()
+    robust_loss_on_prior_position: bool = setting()
+    min_model_size: int = setting(low=2)
+    global_ba_growth_ratio: float = setting(above=1)
+    global_ba_max_iterations: int = setting(low=1)
+    global_ba_skip_redundant_points: bool = setting()
+    global_prior_ba: bool = setting()
+    global_prior_ba_max_iterations: int = setting(low=1)
+    global_ba_max_refinements: int = setting(COLMAP_GLOBAL_BA_MAX_REFINEMENTS, low=1)
+    local_ba_num_images: int = setting(COLMAP_LOCAL_BA["local_ba_num_images"], low=1)
+    local_ba_max_iterations: int = setting(COLMAP_LOCAL_BA["local_ba_max_iterations"], low=1)
+    local_ba_max_refinements: int = setting(COLMAP_LOCAL_BA["local_ba_max_refinements"], low=1)
 
 
 @dataclass(frozen=True)
 class SfmSettings:
-    """``reconstruct.sfm``: extraction, matching and mapping; ``num_threads`` -1 is every core."""
+    """``reconstruct.sfm``: extraction, matching and mapping."""
 
-    num_threads: int
-    extraction: ExtractionSettings
-    matching: MatchingSettings
-    mapping: MappingSettings
+    num_threads: int = setting(low=-1)  # -1: every core
+    extraction: ExtractionSettings = setting()
+    matching: MatchingSettings = setting()
+    mapping: MappingSettings = setting()
 
     def __post_init__(self) -> None:
-        if self.num_threads == 0 or self.num_threads < -1:
-            raise ValueError(f"num_threads must be -1 (all cores) or >= 1, got {self.num_threads}")
+        if self.num_threads == 0:
+            raise ValueError("num_threads must be -1 (every core) or >= 1, got 0")
 
     @classmethod
     def from_config(cls, node: Mapping, prefix: str = "reconstruct.sfm") -> SfmSettings:

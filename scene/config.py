@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
+_REQUIRED = object()
+
 
 def plain(node):
     """A JSON-able copy of a config node: a Hydra ``DictConfig``/``ListConfig`` resolved and
@@ -20,13 +22,50 @@ def plain(node):
     return node
 
 
+def setting(default=_REQUIRED, *, low=None, above=None, high=None, choices=None, odd=False, multiple_of=None):
+    """A settings dataclass field with its range, checked by ``typed_settings``.
+
+    Args:
+        default: the value when the config leaves the key out (none: the key is required).
+        low, high: inclusive bounds; above: an exclusive lower bound.
+        choices: the allowed values; odd: an odd integer; multiple_of: an integer multiple of it.
+    """
+    import dataclasses
+
+    rules = {"low": low, "above": above, "high": high, "choices": choices, "multiple_of": multiple_of}
+    metadata = {k: v for k, v in rules.items() if v is not None} | ({"odd": True} if odd else {})
+    if default is _REQUIRED:
+        return dataclasses.field(metadata=metadata)
+    return dataclasses.field(default=default, metadata=metadata)
+
+
+def _check_range(value, rules: Mapping) -> str | None:
+    """What ``value`` breaks of a field's ``setting`` rules (None: nothing, or no value)."""
+    if value is None:
+        return None
+    if "choices" in rules and value not in rules["choices"]:
+        return f"must be one of {tuple(rules['choices'])}, got {value!r}"
+    if "low" in rules and value < rules["low"]:
+        return f"must be >= {rules['low']}, got {value}"
+    if "above" in rules and not value > rules["above"]:
+        return f"must be > {rules['above']}, got {value}"
+    if "high" in rules and value > rules["high"]:
+        return f"must be <= {rules['high']}, got {value}"
+    if rules.get("odd") and value % 2 == 0:
+        return f"must be an odd number, got {value}"
+    if "multiple_of" in rules and value % rules["multiple_of"]:
+        return f"must be a multiple of {rules['multiple_of']}, got {value}"
+    return None
+
+
 def typed_settings(cls, node, prefix: str):
     """Build the settings dataclass ``cls`` from a config mapping, refusing what does not fit.
 
     Every field of ``cls`` is a key of ``node`` (a field with a default may be left out); a key
     ``cls`` lacks is an error, and so is a value of the wrong kind. A field whose type is itself such
-    a dataclass is built from its sub-mapping. ``cls.__post_init__`` checks the ranges. Every error
-    is a ``ValueError`` that names the setting (``prefix.key``).
+    a dataclass is built from its sub-mapping. Each field's range (``setting``) is checked, then
+    ``cls.__post_init__`` checks what involves several fields. Every error is a ``ValueError`` that
+    names the setting (``prefix.key``).
     """
     import dataclasses
     import math
@@ -70,6 +109,9 @@ def typed_settings(cls, node, prefix: str):
             value = float(value)
         elif str in options and not isinstance(value, str):
             raise ValueError(f"{where} must be a string, got {value!r}")
+        broken = _check_range(value, field.metadata)
+        if broken:
+            raise ValueError(f"{where} {broken}")
         values[name] = value
     try:
         return cls(**values)

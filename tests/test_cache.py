@@ -62,6 +62,7 @@ def test_exploration_key_follows_the_scene_content_not_only_its_config():
     import numpy as np
     from hydra import compose, initialize_config_dir
 
+    from pipeline.proxy import ProxyInputs
     from pipeline.proxy import exploration_cache_key as key_of
     from scene.base import Box, MeshPart, Scene
 
@@ -82,9 +83,7 @@ def test_exploration_key_follows_the_scene_content_not_only_its_config():
         return Scene("tomb", [quad], {"ground": texture}, box, box)
 
     def exploration_cache_key(cfg, scene):
-        return key_of(
-            scene, cfg.scene, cfg.camera, cfg.exploration, cfg.render, cfg.reconstruct, int(cfg.seed)
-        )
+        return key_of(scene, ProxyInputs.of(cfg))
 
     same_a, same_b, other = scene(10), scene(10), scene(11)
     assert exploration_cache_key(cfg, same_a) == exploration_cache_key(cfg, same_b)
@@ -122,7 +121,7 @@ def test_exploration_key_follows_the_scene_content_not_only_its_config():
 PROXY_CHILD = r"""
 import hashlib, json, sys
 from hydra import compose, initialize_config_dir
-from pipeline.proxy import PROXY_FILE, build_exploration_proxy
+from pipeline.proxy import PROXY_FILE, ProxyInputs, build_exploration_proxy
 from scene.camera import Intrinsics
 from scene.registry import load_scene
 
@@ -130,11 +129,8 @@ cache = sys.argv[1]
 with initialize_config_dir(config_dir=sys.argv[2], version_base=None):
     cfg = compose("config", overrides=["experiment=smoke", "scene=tomb"])
 scene = load_scene(cfg.scene, cache_dir=cache)
-entry, record = build_exploration_proxy(
-    scene, Intrinsics(**cfg.camera), scene_cfg=cfg.scene, camera_cfg=cfg.camera,
-    exploration_cfg=cfg.exploration, render_cfg=cfg.render, reconstruct_cfg=cfg.reconstruct,
-    cache_dir=cache, seed=0,
-)
+inputs = ProxyInputs.of({**cfg, "cache_dir": cache})
+entry, record = build_exploration_proxy(scene, Intrinsics(**cfg.camera), inputs)
 digest = hashlib.sha256((entry / PROXY_FILE).read_bytes()).hexdigest()
 out = {"entry": str(entry), "hit": record["cache_hit"], "proxy": digest, "n_images": record["n_images"]}
 print(json.dumps(out))
