@@ -210,7 +210,7 @@ def splice_headline(readme: str, table: str) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m experiments.results", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="uavplan-study results", description=__doc__.split("\n")[0])
     parser.add_argument("studies", nargs="*", help="study folders under --cells (default: all of them)")
     parser.add_argument("--cells", type=Path, default=CELLS, help="the records' root (results/cells)")
     parser.add_argument("--out", type=Path, default=ROOT / "results", help="where <study>/ is written")

@@ -125,8 +125,7 @@ def test_uavplan_evaluate_scores_a_cloud_on_its_own_mesh(tmp_path):
         str(tmp_path / "cloud.ply"),
         "--gt-mesh",
         str(tmp_path / "gt.ply"),
-        "--region",
-        "-3,-3,-1,3,3,3",
+        "--region=-3,-3,-1,3,3,3",
         "--out",
         str(tmp_path / "scored"),
     )
