@@ -235,12 +235,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"error: --readme {args.readme}: {exc}", file=sys.stderr)
             return 2
     for study in studies:
+        # A superseded study's results live under <out>/archive/ and are regenerated there.
+        out = args.out / "archive" if (args.out / "archive" / study).is_dir() else args.out
         try:
-            written = write_study(study, args.cells, args.out)
+            written = write_study(study, args.cells, out)
         except RunDirectoryError as exc:
             print(f"error: study {study}: {exc}", file=sys.stderr)
             return 2
-        print(f"{study}: {len(written)} files in {args.out / study}")
+        print(f"{study}: {len(written)} files in {out / study}")
     if readme is not None:
         headline = args.out / studies[0] / "headline.md"
         write_text_atomic(args.readme, splice_headline(readme, headline.read_text()))

@@ -22,6 +22,7 @@ from reconstruct.pipeline import proxy_flight_config
 from reconstruct.sfm_settings import SfmSettings
 from scene.camera import Intrinsics
 from scene.config import plain
+from scene.plan import PlanningError
 
 
 class SettingsError(ValueError):
@@ -108,6 +109,6 @@ def cell_settings(cfg: DictConfig) -> CellSettings:
         evaluation = EvaluationSettings.from_config(cfg.evaluate)
     except SettingsError:
         raise
-    except (ValueError, TypeError, KeyError) as exc:
+    except (ValueError, TypeError, KeyError, PlanningError) as exc:
         raise SettingsError(str(exc).strip("'\"")) from exc
     return CellSettings(intrinsics, drone, params, budget, evaluation, float(gsd))

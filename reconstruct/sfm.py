@@ -77,10 +77,12 @@ class SfmResult:
 def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> SfmOptions:
     """Map the ``reconstruct.sfm`` config onto pycolmap options (the one place this is done).
 
-    ``deterministic`` runs the mapper (and its bundle adjustments) on one thread: Ceres' threaded
-    solvers sum in an order that changes from run to run, and the mapper's next-image choice follows
-    those last bits. Extraction and matching give the same database on any thread count (image ids
-    fixed by ``extract_features``, RANSAC seeded), so they keep every core.
+    ``deterministic`` runs the mapper (and its bundle adjustments) and the matcher on one thread:
+    Ceres' threaded solvers sum in an order that changes from run to run, and the mapper's next-image
+    choice follows those last bits; the threaded matcher, loaded by a second process, once gave one
+    image's pairs other matches from the same descriptors (tests/test_cache.py, two builders at
+    once). Extraction gives the same database on any thread count (image ids fixed by
+    ``extract_features``), so it keeps every core.
     """
     settings = SfmSettings.from_config(cfg)
     ecfg, mcfg, pcfg = settings.extraction, settings.matching, settings.mapping
@@ -96,7 +98,7 @@ def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> Sfm
     extraction.sift.first_octave = ecfg.first_octave
 
     matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = threads
+    matching.num_threads = mapper_threads
     matching.guided_matching = mcfg.guided_matching
     matching.sift.max_ratio = mcfg.max_ratio
 
