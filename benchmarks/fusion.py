@@ -37,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg.fusion.max_memory_gb = args.max_memory_gb
     wall, cpu = time.perf_counter(), time.process_time()
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    n_points = _fuse_atomic(args.workspace, args.out, cfg, names, deterministic=False)
+    n_points = _fuse_atomic(args.workspace, args.out, cfg, names, deterministic=False).n_points
     peak_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
     print(
         f"fusion: {n_points} points from {len(names)} views in {time.perf_counter() - wall:.1f} s wall, "

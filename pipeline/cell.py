@@ -100,6 +100,32 @@ def plan_stage(
     return plan, record
 
 
+ORACLE_DIR = Path("recon") / "oracle"
+
+
+def oracle_stage(
+    scene, run_dir: Path, reconstruct_cfg: Mapping, evaluation: EvaluationSettings, seed: int
+) -> dict:
+    """The matcher's ceiling of the cell's flight (``reconstruct.oracle_beside``): the oracle's cloud
+    at the registered cameras of ``run_dir/recon`` in ``run_dir/recon/oracle/``, scored as the
+    real one is; returns its ``oracle_*`` fields (numbers only; no error pictures)."""
+    from dataclasses import replace
+
+    from evaluate.run import evaluate_reconstruction
+    from reconstruct.pipeline import oracle_flight
+
+    out = run_dir / ORACLE_DIR
+    dense = oracle_flight(
+        run_dir / "recon", run_dir / "images", out, reconstruct_cfg, seed, scene.ground_truth_mesh
+    )
+    quiet = replace(evaluation, visualise=replace(evaluation.visualise, enabled=False), export_gt_mesh=False)
+    scores = evaluate_reconstruction(dense["dense_ply"], scene, quiet, out / "eval")
+    fields = {**dense, **scores}
+    return {
+        f"oracle_{k}": v for k, v in fields.items() if isinstance(v, int | float | bool) and v is not None
+    }
+
+
 def run_cell(cfg: DictConfig, run_dir: Path, record: dict) -> None:
     """Chain the stages for one (scene, planner, seed) cell; fill ``record`` as they complete.
 
@@ -148,11 +174,17 @@ def run_cell(cfg: DictConfig, run_dir: Path, record: dict) -> None:
     record.update(n_images=len(plan.viewpoints), render_time_s=rendered.render_time_s)
 
     record["stage"] = "reconstruct"
-    recon = reconstruct_flight(run_dir / "images", run_dir / "recon", cfg.reconstruct, seed)
+    recon = reconstruct_flight(
+        run_dir / "images", run_dir / "recon", cfg.reconstruct, seed, ground_truth=scene.ground_truth_mesh
+    )
     record.update({k: v for k, v in recon.items() if isinstance(v, int | float | str | bool)})
 
     record["stage"] = "evaluate"
     record.update(evaluate_reconstruction(recon["dense_ply"], scene, settings.evaluation, run_dir / "eval"))
+
+    if bool(cfg.reconstruct.get("oracle_beside", False)):
+        record["stage"] = "oracle"
+        record.update(oracle_stage(scene, run_dir, cfg.reconstruct, settings.evaluation, seed))
     record["stage"] = "done"
 
 
@@ -203,4 +235,3 @@ def run_and_record(cfg: DictConfig, run_dir: Path) -> dict:
     write_metrics(run_dir, record, cfg=OmegaConf.to_container(cfg, resolve=True))
     log.info("metrics: %s", run_dir / "metrics.json")
     return record
-

@@ -18,7 +18,7 @@ from drone.model import DroneSettings
 from evaluate.settings import EvaluationSettings
 from planner.budget import DEFAULT_LEVEL, apply_budget
 from reconstruct.dense_settings import DenseSettings
-from reconstruct.pipeline import proxy_flight_config
+from reconstruct.pipeline import flight_fusion_bytes, proxy_flight_config
 from reconstruct.sfm_settings import SfmSettings
 from scene.camera import Intrinsics
 from scene.config import plain
@@ -86,6 +86,19 @@ def check_planner(target: str, params, intrinsics: Intrinsics) -> None:
         check(params, intrinsics)
 
 
+def check_fusion_memory(dense: DenseSettings, camera: dict) -> None:
+    """Refuse a fusion memory budget that cannot hold two of the flight's views (fusion's least)."""
+    budget = dense.fusion.max_memory_gb
+    if budget is None or isinstance(budget, str):
+        return
+    two_views_gb = flight_fusion_bytes(2, camera, {"max_image_size": dense.max_image_size}) / 1e9
+    if budget < two_views_gb:
+        raise ValueError(
+            f"reconstruct.dense.fusion.max_memory_gb={budget:g} holds fewer than two views of "
+            f"{camera['width']}x{camera['height']} images: at least {two_views_gb:.3f} GB"
+        )
+
+
 def cell_settings(cfg: DictConfig) -> CellSettings:
     """Build and check every block of a cell's config (see the module docstring).
 
@@ -104,8 +117,9 @@ def cell_settings(cfg: DictConfig) -> CellSettings:
         params, budget = planner_setup(cfg)
         check_planner(str(cfg.planner._target_), params, intrinsics)
         SfmSettings.from_config(cfg.reconstruct.sfm)
-        DenseSettings.from_config(cfg.reconstruct.dense)
+        dense = DenseSettings.from_config(cfg.reconstruct.dense)
         DenseSettings.from_config(proxy_flight_config(cfg.reconstruct)["dense"], "reconstruct.proxy.dense")
+        check_fusion_memory(dense, plain(cfg.camera))
         evaluation = EvaluationSettings.from_config(cfg.evaluate)
     except SettingsError:
         raise

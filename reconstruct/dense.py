@@ -33,6 +33,7 @@ import pycolmap
 from tqdm import tqdm
 
 from reconstruct.dense_settings import BACKENDS, DenseSettings
+from reconstruct.depth_filter import edge_pixels, geometric_support
 from scene.io import write_atomic, write_text_atomic
 
 if TYPE_CHECKING:
@@ -86,11 +87,17 @@ class RectifiedPair:
 
 
 def select_backend(requested: str) -> str:
-    """``cuda`` when requested or (``auto``) when pycolmap was built with CUDA, else ``cpu``."""
+    """The depth back-end to run: ``auto`` is the CPU back-end (SGBM), measured the better one here.
+
+    The one CUDA measurement (PatchMatch on a 40-view 640 px tomb workspace, results/limitations.md)
+    was both slower end to end and less accurate than SGBM on 2 CPU cores, so ``auto`` does not pick
+    CUDA merely because pycolmap has it; ``cuda`` asks for it. ``oracle`` ray-casts the ground truth
+    (``reconstruct.oracle``): the matcher's ceiling, for simulated runs only.
+    """
     if requested not in BACKENDS:
         raise ValueError(f"reconstruct.dense.backend must be one of {BACKENDS}, got {requested!r}")
     if requested == "auto":
-        return "cuda" if pycolmap.has_cuda else "cpu"
+        return "cpu"
     if requested == "cuda" and not pycolmap.has_cuda:
         raise ValueError(
             "reconstruct.dense.backend=cuda but this pycolmap has no CUDA (install pycolmap-cuda12)"
@@ -237,6 +244,19 @@ def select_partners(workspace: Path, views: Mapping[str, View], cfg: Mapping) ->
         candidates.sort(reverse=True)
         partners[ref_name] = [name for _, name in candidates[:num_partners]]
     return partners
+
+
+def overlapping_views(workspace: Path) -> dict[str, list[str]]:
+    """Every view's other views by the sparse points they share with it, most first."""
+    model = pycolmap.MVSModel()
+    model.read(str(workspace), "COLMAP")
+    shared = model.compute_shared_points()
+    return {
+        model.get_image_name(ref): [
+            model.get_image_name(src) for src, _ in sorted(shared[ref].items(), key=lambda kv: -kv[1])
+        ]
+        for ref in range(len(shared))
+    }
 
 
 def rectify_pair(ref: View, src: View, disparity_offset: int = 0, pad_left: int = 0) -> RectifiedPair | None:
@@ -601,6 +621,17 @@ def compute_depth_maps_cpu(workspace: Path, cfg: Mapping) -> dict[str, int]:
     min_consistent = int(cfg["min_consistent_partners"])
     rel_tol = float(cfg["consistency_rel_tol"])
     window = int(cfg["normal_window_px"])
+    edge_margin = int(cfg.get("edge_margin_px", 0))
+    geometric = cfg.get("geometric_consistency") or {"min_views": 0}
+    checked = int(geometric["min_views"]) > 0  # a second pass checks every map against others
+    raw_dir = workspace / "stereo" / "raw_depth"
+    if checked:
+        raw_dir.mkdir(parents=True, exist_ok=True)
+
+    def finish(name: str, depth: np.ndarray) -> int:
+        normals = normals_from_depth(depth, views[name].K, window)
+        write_maps(workspace, name, depth, normals)
+        return int(np.count_nonzero(np.any(normals != 0, axis=-1)))
 
     def gray(name: str) -> np.ndarray:
         image = cv2.imread(str(workspace / "images" / name), cv2.IMREAD_GRAYSCALE)
@@ -621,9 +652,23 @@ def compute_depth_maps_cpu(workspace: Path, cfg: Mapping) -> dict[str, int]:
         if not depths:
             return name, 0
         depth = consistent_depth(np.stack(depths), min_consistent, rel_tol)
-        normals = normals_from_depth(depth, ref.K, window)
-        write_maps(workspace, name, depth, normals)
-        return name, int(np.count_nonzero(np.any(normals != 0, axis=-1)))
+        depth[edge_pixels(depth, edge_margin)] = np.nan
+        if checked:
+            np.save(raw_dir / f"{name.replace('/', '__')}.npy", depth)
+            return name, int(np.count_nonzero(np.isfinite(depth)))
+        return name, finish(name, depth)
+
+    def raw(name: str) -> np.ndarray:
+        return np.load(raw_dir / f"{name.replace('/', '__')}.npy")
+
+    def checked_view(name: str) -> tuple[str, int]:
+        depth = raw(name)
+        others = [n for n in neighbours[name] if valid_pixels.get(n, 0) > 0][: int(geometric["num_views"])]
+        support = geometric_support(
+            views[name], depth, [(views[n], raw(n)) for n in others], float(geometric["rel_tol"])
+        )
+        depth[support < int(geometric["min_views"])] = np.nan
+        return name, finish(name, depth)
 
     threads = int(cfg.get("num_threads", -1))
     threads = os.cpu_count() or 1 if threads <= 0 else threads
@@ -642,8 +687,16 @@ def compute_depth_maps_cpu(workspace: Path, cfg: Mapping) -> dict[str, int]:
                 pool.map(one_view, names), total=len(names), desc="stereo (SGBM)", unit="view"
             ):
                 valid_pixels[name] = count
+            if checked:
+                neighbours = overlapping_views(workspace)
+                mapped = [n for n in names if valid_pixels[n] > 0]
+                for name, count in tqdm(
+                    pool.map(checked_view, mapped), total=len(mapped), desc="geometric check", unit="view"
+                ):
+                    valid_pixels[name] = count
     finally:
         cv2.setNumThreads(opencv_threads)
+        shutil.rmtree(raw_dir, ignore_errors=True)
     return valid_pixels
 
 
@@ -689,6 +742,24 @@ def fusion_options(cfg: Mapping, deterministic: bool = False) -> pycolmap.Stereo
 FUSION_BYTES_PER_PX = 20
 
 
+# ``fusion.max_memory_gb: auto``: fusion's views may hold this share of the memory the machine has
+# free when fusion starts. Chunked fusion peaks at about 1.6x its budget (results/throughput.md),
+# so 0.5 keeps the peak near 0.8 of what is free.
+AUTO_MEMORY_SHARE = 0.5
+
+
+def fusion_budget_gb(setting) -> float | None:
+    """The fusion memory budget (GB) of ``fusion.max_memory_gb``: a number as given, ``auto`` a share
+    of the memory free now (``AUTO_MEMORY_SHARE``), None no budget."""
+    if setting is None:
+        return None
+    if setting == "auto":
+        import psutil
+
+        return AUTO_MEMORY_SHARE * psutil.virtual_memory().available / 1e9
+    return float(setting)
+
+
 def fusion_chunk_size(workspace: Path, names, max_memory_gb: float | None) -> int | None:
     """How many views a fusion chunk may hold within ``max_memory_gb`` (GB); None when every view
     of ``names`` fits at once (or there is no budget)."""
@@ -702,26 +773,49 @@ def fusion_chunk_size(workspace: Path, names, max_memory_gb: float | None) -> in
     max_views = int(budget // max(view_bytes))
     if max_views < 2:
         raise ValueError(
-            f"reconstruct.dense.fusion.max_memory_gb={max_memory_gb} holds fewer than two views "
+            f"reconstruct.dense.fusion.max_memory_gb={max_memory_gb:.3g} holds fewer than two views "
             f"({max(view_bytes) / 1e9:.3f} GB each)"
         )
     return max_views
 
 
+@dataclass(frozen=True)
+class FusionReport:
+    """How a fusion ran: fused points, chunks (1: every view at once) and the budget (GB, or None)."""
+
+    n_points: int
+    n_chunks: int
+    max_memory_gb: float | None
+
+
 def fuse(workspace: Path, output_ply: Path, cfg: Mapping, names, deterministic: bool = False) -> int:
     """Fuse the workspace's geometric depth/normal maps of ``names`` into ``output_ply``; return the
-    number of fused points. The PLY carries positions, normals and colours (model frame, metres).
+    number of fused points (``fuse_report`` says how it ran)."""
+    return fuse_report(workspace, output_ply, cfg, names, deterministic).n_points
 
-    Above ``fusion.max_memory_gb`` the views are fused in chunks (``reconstruct.fusion_chunks``).
-    ``deterministic`` fuses on one thread: COLMAP's fusion threads share the "pixel already fused"
-    masks, so which thread claims a pixel first (and so the cloud) changed from run to run.
+
+def fuse_report(
+    workspace: Path, output_ply: Path, cfg: Mapping, names, deterministic: bool = False
+) -> FusionReport:
+    """Fuse the workspace's geometric depth/normal maps of ``names`` into ``output_ply``. The PLY
+    carries positions, normals and colours (model frame, metres).
+
+    Above the ``fusion.max_memory_gb`` budget (``fusion_budget_gb``) the views are fused in chunks
+    (``reconstruct.fusion_chunks``). ``deterministic`` fuses on one thread: COLMAP's fusion threads
+    share the "pixel already fused" masks, so which thread claims a pixel first (and so the cloud)
+    changed from run to run.
     """
     workspace = Path(workspace)
     names = sorted(names)
-    max_views = fusion_chunk_size(workspace, names, cfg["fusion"].get("max_memory_gb"))
+    if cfg["fusion"].get("method", "colmap") == "rays":
+        return FusionReport(_fuse_rays(workspace, output_ply, cfg, names), 1, None)
+    budget = fusion_budget_gb(cfg["fusion"].get("max_memory_gb"))
+    max_views = fusion_chunk_size(workspace, names, budget)
     if max_views is None:
-        return _fuse_views(workspace, output_ply, cfg, names, deterministic)
-    return _fuse_in_chunks(workspace, output_ply, cfg, names, max_views, deterministic)
+        n_points = _fuse_views(workspace, output_ply, cfg, names, deterministic)
+        return FusionReport(_support_filtered(output_ply, cfg, n_points), 1, budget)
+    n_points, n_chunks = _fuse_in_chunks(workspace, output_ply, cfg, names, max_views, deterministic)
+    return FusionReport(n_points, n_chunks, budget)
 
 
 def _fuse_views(workspace: Path, output_ply: Path, cfg: Mapping, names, deterministic: bool) -> int:
@@ -740,7 +834,7 @@ def _fuse_views(workspace: Path, output_ply: Path, cfg: Mapping, names, determin
 
 def _fuse_in_chunks(
     workspace: Path, output_ply: Path, cfg: Mapping, names: list[str], max_views: int, deterministic: bool
-) -> int:
+) -> tuple[int, int]:
     import open3d as o3d
 
     from reconstruct import fusion_chunks as fc
@@ -762,7 +856,7 @@ def _fuse_in_chunks(
     chunk_of = np.full(len(workspace_index), -1)
     for c, chunk in enumerate(chunks):
         chunk_of[[workspace_index[names[v]] for v in chunk.own]] = c
-    parts: dict[str, list[np.ndarray]] = {"points": [], "normals": [], "colors": []}
+    parts: dict[str, list[np.ndarray]] = {"points": [], "normals": [], "colors": [], "support": []}
     chunk_ply = Path(output_ply).with_name(Path(output_ply).name + ".chunk.ply")
     chunk_vis = chunk_ply.with_name(chunk_ply.name + ".vis")
     try:
@@ -776,22 +870,88 @@ def _fuse_in_chunks(
             parts["points"].append(np.asarray(cloud.points)[keep])
             parts["normals"].append(np.asarray(cloud.normals)[keep])
             parts["colors"].append(np.asarray(cloud.colors)[keep])
+            parts["support"].append(counts[keep])
     finally:
         chunk_ply.unlink(missing_ok=True)
         chunk_vis.unlink(missing_ok=True)
-    merged = o3d.geometry.PointCloud()
-    merged.points = o3d.utility.Vector3dVector(np.concatenate(parts["points"]))
-    merged.normals = o3d.utility.Vector3dVector(np.concatenate(parts["normals"]))
-    merged.colors = o3d.utility.Vector3dVector(np.concatenate(parts["colors"]))
-    if not o3d.io.write_point_cloud(str(output_ply), merged):
-        raise OSError(f"{output_ply}: could not write the fused cloud")
-    return len(merged.points)
+    arrays = {key: np.concatenate(value) for key, value in parts.items()}
+    n_points = _write_cloud(output_ply, arrays, _support_kept(arrays, cfg))
+    return n_points, len(chunks)
+
+
+def _fuse_rays(workspace: Path, output_ply: Path, cfg: Mapping, names: list[str]) -> int:
+    """``fusion.method: rays`` (``reconstruct.fusion_rays``): points on the depth maps' rays."""
+    from reconstruct.fusion_rays import fuse_along_rays
+
+    views = read_views(workspace)
+    partners = select_partners(workspace, views, cfg)
+    baselines = {
+        name: float(np.linalg.norm(views[p[0]].center - views[name].center))
+        for name, p in partners.items()
+        if p
+    }
+    cloud = fuse_along_rays(workspace, names, views, overlapping_views(workspace), baselines, cfg["fusion"])
+    log.info("fusion along rays: %d points from %d views", len(cloud["points"]), len(names))
+    return _write_cloud(output_ply, cloud, _support_kept(cloud, cfg))
+
+
+def _support_kept(cloud: Mapping, cfg: Mapping) -> np.ndarray | None:
+    """The fused points the support filter keeps (``reconstruct.fusion_support``); None when it is off."""
+    share = float(cfg["fusion"].get("support_share", 0.0))
+    if share <= 0:
+        return None
+    from reconstruct.fusion_support import supported_points
+
+    keep = supported_points(
+        cloud["points"], cloud["support"], float(cfg["fusion"]["support_radius_m"]), share
+    )
+    log.info("fusion: the support filter keeps %d of %d points", int(keep.sum()), len(keep))
+    return keep
+
+
+def _write_cloud(path: Path, cloud: Mapping, keep: np.ndarray | None) -> int:
+    """Write points, normals and colours (``keep`` of them, or all) as a PLY; return the count."""
+    import open3d as o3d
+
+    keep = slice(None) if keep is None else keep
+    out = o3d.geometry.PointCloud()
+    out.points = o3d.utility.Vector3dVector(cloud["points"][keep])
+    out.normals = o3d.utility.Vector3dVector(cloud["normals"][keep])
+    out.colors = o3d.utility.Vector3dVector(cloud["colors"][keep])
+    if not o3d.io.write_point_cloud(str(path), out):
+        raise OSError(f"{path}: could not write the fused cloud")
+    return len(out.points)
+
+
+def _support_filtered(output_ply: Path, cfg: Mapping, n_points: int) -> int:
+    """Apply the support filter to a one-pass fusion's PLY (and its ``.vis``) in place."""
+    import open3d as o3d
+
+    from reconstruct.fusion_chunks import read_visibility
+
+    if float(cfg["fusion"].get("support_share", 0.0)) <= 0 or n_points <= 0:
+        return n_points
+    counts, _ = read_visibility(Path(str(output_ply) + ".vis"))
+    cloud = o3d.io.read_point_cloud(str(output_ply))
+    arrays = {
+        "points": np.asarray(cloud.points),
+        "normals": np.asarray(cloud.normals),
+        "colors": np.asarray(cloud.colors),
+        "support": counts,
+    }
+    return _write_cloud(output_ply, arrays, _support_kept(arrays, cfg))
 
 
 def dense_reconstruct(
-    sparse_dir: Path, image_dir: Path, out_dir: Path, cfg: Mapping, deterministic: bool = False
+    sparse_dir: Path,
+    image_dir: Path,
+    out_dir: Path,
+    cfg: Mapping,
+    deterministic: bool = False,
+    ground_truth=None,
+    seed: int = 0,
 ) -> dict:
-    """Workspace, depth maps (CPU or CUDA back-end) and fusion into ``out_dir/dense.ply``.
+    """Workspace, depth maps (CPU, CUDA or oracle back-end) and fusion into ``out_dir/dense.ply``.
 
     Args:
         sparse_dir: the (aligned) sparse model.
@@ -799,41 +959,57 @@ def dense_reconstruct(
         out_dir: where ``dense/`` (the workspace) and ``dense.ply`` go.
         cfg: the ``reconstruct.dense`` config.
         deterministic: the same cloud, bit for bit, from the same model and images (see ``fuse``).
+        ground_truth: the ground-truth mesh (world metres), for the ``oracle`` back-end only.
+        seed: seeds the oracle's noise.
 
     Returns:
-        ``backend``, ``dense_time_s`` (s), ``n_depth_maps``, ``n_dense_points``, ``dense_path``.
+        ``backend``, ``dense_time_s`` (s), ``n_depth_maps``, ``n_dense_points``, ``dense_path``,
+        ``fusion_n_chunks``, ``fusion_max_memory_gb`` (the budget fusion ran under, or None).
+
+    Raises:
+        ValueError: a bad setting, or the oracle asked for without a ground truth.
     """
     DenseSettings.from_config(cfg)  # a bad setting is refused before the workspace is touched
     backend = select_backend(str(cfg["backend"]))
+    if backend == "oracle" and ground_truth is None:
+        raise ValueError(
+            "reconstruct.dense.backend=oracle needs the ground truth: only a simulated run has one"
+        )
     start = time.perf_counter()
     workspace = prepare_workspace(Path(sparse_dir), Path(image_dir), Path(out_dir) / "dense", cfg)
     log.info("dense: %s back-end", backend)
     if backend == "cuda":
         valid = compute_depth_maps_cuda(workspace, cfg)
+    elif backend == "oracle":
+        from reconstruct.oracle import compute_depth_maps_oracle
+
+        valid = compute_depth_maps_oracle(workspace, cfg, ground_truth, seed)
     else:
         valid = compute_depth_maps_cpu(workspace, cfg)
     names = [n for n, count in valid.items() if count > 0]
     output_ply = Path(out_dir) / "dense.ply"
-    n_points = 0
+    report = FusionReport(0, 0, None)
     if names:
-        n_points = _fuse_atomic(workspace, output_ply, cfg, names, deterministic)
+        report = _fuse_atomic(workspace, output_ply, cfg, names, deterministic)
     return {
         "backend": backend,
         "dense_time_s": time.perf_counter() - start,
         "n_depth_maps": len(names),
-        "n_dense_points": n_points,
+        "n_dense_points": report.n_points,
         "dense_path": str(output_ply) if names else None,
+        "fusion_n_chunks": report.n_chunks,
+        "fusion_max_memory_gb": report.max_memory_gb,
     }
 
 
-def _fuse_atomic(workspace: Path, output_ply: Path, cfg: Mapping, names, deterministic: bool) -> int:
+def _fuse_atomic(workspace: Path, output_ply: Path, cfg: Mapping, names, deterministic: bool) -> FusionReport:
     holder = {}
 
     def writer(tmp: Path) -> None:
-        holder["n"] = fuse(workspace, tmp, cfg, names, deterministic)
+        holder["report"] = fuse_report(workspace, tmp, cfg, names, deterministic)
         # pycolmap also writes which images saw each point (<ply>.vis, ~70 MB a cell); nothing
         # here reads it, and under the temporary name it would be left behind.
         tmp.with_name(tmp.name + ".vis").unlink(missing_ok=True)
 
     write_atomic(output_ply, writer)
-    return holder["n"]
+    return holder["report"]

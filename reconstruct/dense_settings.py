@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 from scene.config import setting, typed_settings
 
-BACKENDS = ("auto", "cpu", "cuda")
+BACKENDS = ("auto", "cpu", "cuda", "oracle")
 
 
 @dataclass(frozen=True)
@@ -33,8 +33,32 @@ class FusionSettings:
     max_reproj_error: float = setting(above=0)
     max_depth_error: float = setting(above=0)
     max_normal_error: float = setting(above=0)
-    max_memory_gb: float | None = setting(None, above=0)
+    max_memory_gb: float | str | None = setting(None, above=0)  # a number (GB), auto or null
     check_num_images: int | None = setting(None, low=1)
+    support_share: float = setting(0.0, low=0, high=1)  # reconstruct.fusion_support; 0: off
+    method: str = setting("colmap", choices=("colmap", "rays"))  # rays: reconstruct.fusion_rays
+    ray_neighbours: int = setting(12, low=1)
+    support_radius_m: float = setting(0.03, above=0)
+
+    def __post_init__(self) -> None:
+        if isinstance(self.max_memory_gb, str) and self.max_memory_gb != "auto":
+            raise ValueError(f"max_memory_gb must be a number (GB), auto or null, got {self.max_memory_gb!r}")
+
+
+@dataclass(frozen=True)
+class GeometricConsistencySettings:
+    """Multi-view geometric consistency of each depth (``reconstruct.depth_filter``)."""
+
+    min_views: int = setting(low=0)  # 0: off
+    num_views: int = setting(low=1)
+    rel_tol: float = setting(above=0)
+
+
+@dataclass(frozen=True)
+class OracleSettings:
+    """The oracle back-end's stereo noise (``reconstruct.oracle``): disparity noise in pixels."""
+
+    disparity_sigma_px: float = setting(low=0)
 
 
 @dataclass(frozen=True)
@@ -67,8 +91,11 @@ class DenseSettings:
     sgbm: SgbmSettings = setting()
     min_consistent_partners: int = setting(low=1)
     consistency_rel_tol: float = setting(above=0)
+    edge_margin_px: int = setting(low=0)
+    geometric_consistency: GeometricConsistencySettings = setting()
     fusion: FusionSettings = setting()
     patch_match: PatchMatchSettings = setting()
+    oracle: OracleSettings = setting()
 
     def __post_init__(self) -> None:
         if not self.min_triangulation_angle_deg < self.max_triangulation_angle_deg:

@@ -32,7 +32,7 @@ import pycolmap
 import trimesh
 
 from reconstruct.align import georeference_models, pose_errors
-from reconstruct.dense import FUSION_BYTES_PER_PX, dense_reconstruct
+from reconstruct.dense import FUSION_BYTES_PER_PX, dense_reconstruct, fusion_budget_gb
 from reconstruct.errors import ReconstructionError
 from reconstruct.flight import CAMERAS_FILE, Flight, read_flight, simulate_gnss
 from reconstruct.proxy import poisson_proxy
@@ -62,7 +62,7 @@ FLIGHT_CONFIG_KEYS = (
     "deterministic",
 )
 # Settings that change no result (only what is kept on disk): left out of every cache key.
-OUTPUT_ONLY_KEYS = ("keep_dense_workspace",)
+OUTPUT_ONLY_KEYS = ("keep_dense_workspace", "oracle_beside")
 # sfm.mapping settings only the global mapper reads.
 GLOBAL_ONLY_MAPPING_KEYS = ("global_prior_ba", "global_prior_ba_max_iterations")
 # sfm.mapping settings that enter a flight's key only away from COLMAP's value (added after records).
@@ -81,11 +81,18 @@ def _in_effect(section: str, value, fusion_bytes: float = 0.0):
     # the cache keys of incremental runs (their proxies stay valid). Nor can a fusion memory budget
     # the flight's fusion (``fusion_bytes``, bytes) stays within.
     if section == "dense" and isinstance(value, dict) and isinstance(value.get("fusion"), dict):
-        budget = value["fusion"].get(FUSION_BUDGET_KEY)
-        binds = budget is not None and fusion_bytes > float(budget) * 1e9
+        budget = fusion_budget_gb(value["fusion"].get(FUSION_BUDGET_KEY))
+        binds = budget is not None and fusion_bytes > budget * 1e9
         fusion = {k: v for k, v in value["fusion"].items() if k != FUSION_BUDGET_KEY or binds}
         if value.get(REFERENCE_VIEWS_KEYS[0]) is None:  # added after records: off, every view as before
             value = {k: v for k, v in value.items() if k not in REFERENCE_VIEWS_KEYS}
+        if value.get("backend") != "oracle":  # the oracle's noise moves no other back-end's cloud
+            value = {k: v for k, v in value.items() if k != "oracle"}
+        # Depth filters added after records: off, they filter as before they existed.
+        if not value.get("edge_margin_px"):
+            value = {k: v for k, v in value.items() if k != "edge_margin_px"}
+        if not (value.get("geometric_consistency") or {}).get("min_views"):
+            value = {k: v for k, v in value.items() if k != "geometric_consistency"}
         return {**value, "fusion": fusion}
     if section != "sfm" or not isinstance(value, dict) or not isinstance(value.get("mapping"), dict):
         return value
@@ -173,7 +180,7 @@ def colmap_log_to(out_dir: Path) -> Iterator[None]:
         logging_.logtostderr, logging_.alsologtostderr = saved
 
 
-def reconstruct_flight(image_dir, out_dir, cfg: Mapping, seed: int) -> dict:
+def reconstruct_flight(image_dir, out_dir, cfg: Mapping, seed: int, ground_truth=None) -> dict:
     """SfM with GNSS priors, similarity alignment to GNSS, dense depth + fusion for one flight.
 
     Skipped (the stored record is returned, ``cached`` True) when ``out_dir/recon.json`` holds the
@@ -184,6 +191,7 @@ def reconstruct_flight(image_dir, out_dir, cfg: Mapping, seed: int) -> dict:
         out_dir: output folder (see the module docstring for its layout).
         cfg: the ``reconstruct`` config.
         seed: seed of the GNSS noise, RANSAC and the mapper.
+        ground_truth: the ground-truth mesh, for ``dense.backend=oracle`` only.
 
     Returns:
         A flat record: ``status``, ``n_images``, ``n_registered``, ``registered_fraction``, pose
@@ -242,7 +250,7 @@ def reconstruct_flight(image_dir, out_dir, cfg: Mapping, seed: int) -> dict:
                     sparse_stage["align_time_s"],
                 )
                 record |= _drop(sparse_stage, ("status", "content_key")) | {"resumed_after_sfm": True}
-            record |= _dense_stage(flight, out_dir, cfg, record)
+            record |= _dense_stage(flight, out_dir, cfg, record, ground_truth, seed)
     except ReconstructionError as exc:
         exc.record = record | {"status": "failed", "cached": False} | exc.record
         write_json_atomic(out_dir / RECORD_FILE, exc.record | {"content_key": key})
@@ -316,12 +324,20 @@ def _sparse_stage(
     return record
 
 
-def _dense_stage(flight: Flight, out_dir: Path, cfg: Mapping, record: dict) -> dict:
+def _dense_stage(
+    flight: Flight, out_dir: Path, cfg: Mapping, record: dict, ground_truth=None, seed: int = 0
+) -> dict:
     """Depth maps and fusion on the aligned model in ``out_dir/sparse``. Returns the record so far."""
     sparse_dir = out_dir / "sparse"
     with stage_time() as clock:
         dense = dense_reconstruct(
-            sparse_dir, flight.image_dir, out_dir, cfg["dense"], bool(cfg["deterministic"])
+            sparse_dir,
+            flight.image_dir,
+            out_dir,
+            cfg["dense"],
+            bool(cfg["deterministic"]),
+            ground_truth=ground_truth,
+            seed=seed,
         )
     record |= {
         "dense_backend": dense["backend"],
@@ -329,6 +345,8 @@ def _dense_stage(flight: Flight, out_dir: Path, cfg: Mapping, record: dict) -> d
         "dense_cpu_s": clock.cpu_s,
         "n_depth_maps": dense["n_depth_maps"],
         "n_dense_points": dense["n_dense_points"],
+        "fusion_n_chunks": dense["fusion_n_chunks"],
+        "fusion_max_memory_gb": dense["fusion_max_memory_gb"],
     }
     if dense["dense_path"] is None or dense["n_dense_points"] == 0:
         raise ReconstructionError(
@@ -366,6 +384,45 @@ def _write_model_atomic(rec: pycolmap.Reconstruction, sparse_dir: Path) -> None:
 def _newest_log(out_dir: Path) -> str | None:
     logs = sorted(out_dir.glob("colmap.log.*"), key=lambda p: p.stat().st_mtime)
     return str(logs[-1]) if logs else None
+
+
+def oracle_flight(recon_dir, image_dir, out_dir, cfg: Mapping, seed: int, ground_truth) -> dict:
+    """The matcher's ceiling beside a finished reconstruction: the ``oracle`` back-end's depth maps
+    at the registered cameras of ``recon_dir/sparse``, fused by the same fusion into
+    ``out_dir/dense.ply`` (``reconstruct.oracle_beside``).
+
+    Returns:
+        ``dense_ply``, ``dense_time_s``, ``dense_cpu_s``, ``n_depth_maps``, ``n_dense_points``.
+    """
+    out_dir = Path(out_dir)
+    dense_cfg = {**plain(cfg["dense"]), "backend": "oracle"}
+    with stage_time() as clock:
+        dense = dense_reconstruct(
+            Path(recon_dir) / "sparse",
+            image_dir,
+            out_dir,
+            dense_cfg,
+            bool(cfg["deterministic"]),
+            ground_truth=ground_truth,
+            seed=seed,
+        )
+    if not bool(cfg.get("keep_dense_workspace", True)):
+        _remove_tree(out_dir / "dense")
+    if dense["dense_path"] is None:
+        raise ReconstructionError(f"{out_dir}: the oracle produced no depth map", {"stage": "oracle"})
+    log.info(
+        "oracle: %d points from %d depth maps in %.1f s",
+        dense["n_dense_points"],
+        dense["n_depth_maps"],
+        dense["dense_time_s"],
+    )
+    return {
+        "dense_ply": dense["dense_path"],
+        "dense_time_s": dense["dense_time_s"],
+        "dense_cpu_s": clock.cpu_s,
+        "n_depth_maps": dense["n_depth_maps"],
+        "n_dense_points": dense["n_dense_points"],
+    }
 
 
 def proxy_bounds(sparse_dir: Path, margin_m: float) -> Box:

@@ -39,12 +39,40 @@ def setting(default=_REQUIRED, *, low=None, above=None, high=None, choices=None,
     return dataclasses.field(default=default, metadata=metadata)
 
 
+_KIND_WORDS = {
+    bool: "true or false",
+    int: "an integer",
+    float: "a finite number",
+    str: "a string",
+    dict: "a mapping",
+    type(None): "null",
+}
+
+
+def _fits(value, kind) -> bool:
+    """Whether a config value is of a settings field's type (an int is a float, a bool neither)."""
+    import math
+
+    if kind is bool:
+        return isinstance(value, bool)
+    if kind is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if kind is float:
+        return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    if kind is dict:
+        return isinstance(value, Mapping)
+    return isinstance(value, kind)
+
+
 def _check_range(value, rules: Mapping) -> str | None:
-    """What ``value`` breaks of a field's ``setting`` rules (None: nothing, or no value)."""
+    """What ``value`` breaks of a field's ``setting`` rules (None: nothing, or no value). A word
+    (a string) is checked against ``choices`` only."""
     if value is None:
         return None
     if "choices" in rules and value not in rules["choices"]:
         return f"must be one of {tuple(rules['choices'])}, got {value!r}"
+    if isinstance(value, str):
+        return None
     if "low" in rules and value < rules["low"]:
         return f"must be >= {rules['low']}, got {value}"
     if "above" in rules and not value > rules["above"]:
@@ -68,7 +96,6 @@ def typed_settings(cls, node, prefix: str):
     names the setting (``prefix.key``).
     """
     import dataclasses
-    import math
     import typing
 
     if not isinstance(node, Mapping):
@@ -97,18 +124,12 @@ def typed_settings(cls, node, prefix: str):
                 raise ValueError(f"{where} must be set, got null")
             values[name] = None
             continue
-        if bool in options:
-            if not isinstance(value, bool):
-                raise ValueError(f"{where} must be true or false, got {value!r}")
-        elif int in options:
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise ValueError(f"{where} must be an integer, got {value!r}")
-        elif float in options:
-            if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-                raise ValueError(f"{where} must be a finite number, got {value!r}")
+        fitting = [kind for kind in options if _fits(value, kind)]
+        if not fitting:
+            wanted = " or ".join(_KIND_WORDS.get(k, k.__name__) for k in options)
+            raise ValueError(f"{where} must be {wanted}, got {value!r}")
+        if fitting == [float]:
             value = float(value)
-        elif str in options and not isinstance(value, str):
-            raise ValueError(f"{where} must be a string, got {value!r}")
         broken = _check_range(value, field.metadata)
         if broken:
             raise ValueError(f"{where} {broken}")

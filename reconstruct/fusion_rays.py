@@ -1,0 +1,179 @@
+"""Fusion along the reference rays: one point per depth pixel that other views confirm, placed on
+that pixel's ray at the precision-weighted depth of every view that measured it.
+
+COLMAP's fusion (``fusion.method: colmap``) gathers, from a reference pixel, the pixels of other
+views within ``max_reproj_error`` pixels and ``max_depth_error`` of it and outputs the coordinate-wise
+median of their back-projected points. Those points lie on the surface but up to two pixels apart
+across it, and the median of each coordinate of points spread over a slanted or curved surface
+lies off it: the more views join a cluster, the wider it spreads and the farther its median leaves
+the surface, so a flight's fused cloud gets less accurate as views are added (``tests/
+test_dense_quality.py``, results/dense_stage.md).
+
+Here (``fusion.method: rays``) views are taken in turn. Every unused depth pixel of the reference
+is projected into its ``ray_neighbours`` most overlapping views; a neighbour confirms it when its
+own depth at the projected pixel (nearest) lies within ``max_depth_error`` (relative) of the
+point's depth in that view and its normal within ``max_normal_error``. A pixel confirmed by at least
+``min_num_pixels - 1`` neighbours becomes one point on the reference's ray, at the mean of the
+measured depths along that ray weighted by each measurement's precision: the stereo model's
+``1 / sigma_z^2`` with ``sigma_z ~ z^2 / B`` (z the depth in the measuring view, B its stereo
+baseline), so a far or narrow-baseline view counts less than a close, wide one. The confirming
+pixels are marked used and seed no point of their own. Points are whole rays of the depth maps,
+never averaged across the surface, and every view is handled with its neighbours only, so memory
+stays at a few views whatever the flight's size, and the result is the same on any thread count.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from reconstruct.depth_filter import project
+
+
+def read_maps(workspace: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """A view's geometric depth (H, W) (NaN where none) and camera-frame normals (H, W, 3)."""
+    import pycolmap
+
+    from reconstruct.dense import DEPTH_SUFFIX
+
+    stereo = Path(workspace) / "stereo"
+    depth_map = pycolmap.DepthMap()
+    depth_map.read(str(stereo / "depth_maps" / f"{name}{DEPTH_SUFFIX}"))
+    depth = depth_map.to_array().astype(np.float32)
+    depth[~(depth > 0)] = np.nan
+    normal_map = pycolmap.NormalMap()
+    normal_map.read(str(stereo / "normal_maps" / f"{name}{DEPTH_SUFFIX}"))
+    h, w = depth.shape
+    # COLMAP stores maps channel by channel (reconstruct.dense.write_maps).
+    normals = normal_map.to_array().reshape(3, h, w).transpose(1, 2, 0).astype(np.float32)
+    return depth, normals
+
+
+class _MapCache:
+    """The depth and normal maps of the views fusion holds, the least recently used dropped first."""
+
+    def __init__(self, workspace: Path, capacity: int) -> None:
+        self.workspace, self.capacity = workspace, max(2, capacity)
+        self.maps: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+
+    def __getitem__(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        if name in self.maps:
+            self.maps[name] = self.maps.pop(name)  # most recent last
+        else:
+            if len(self.maps) >= self.capacity:
+                self.maps.pop(next(iter(self.maps)))
+            self.maps[name] = read_maps(self.workspace, name)
+        return self.maps[name]
+
+
+def fuse_along_rays(
+    workspace: Path,
+    names: Sequence[str],
+    views: Mapping,
+    neighbours: Mapping[str, list[str]],
+    baselines: Mapping[str, float],
+    cfg: Mapping,
+) -> dict[str, np.ndarray]:
+    """Fuse the geometric maps of ``names`` (see the module docstring).
+
+    Args:
+        workspace: the dense workspace (its ``images/`` give the colours).
+        names: the views with depth maps, in the order they seed points.
+        views: ``reconstruct.dense.View`` by name (OpenCV intrinsics, cam_from_world, metres).
+        neighbours: every view's other views, most overlapping first.
+        baselines: every view's stereo baseline (m), the precision weight's B.
+        cfg: the ``reconstruct.dense.fusion`` settings.
+
+    Returns:
+        ``points`` (N, 3), ``normals`` (N, 3) world unit normals, ``colors`` (N, 3) in [0, 1],
+        ``support`` (N,) how many views measured each point (the reference included).
+    """
+    workspace = Path(workspace)
+    names = list(names)
+    mapped = set(names)
+    n_neighbours = int(cfg["ray_neighbours"])
+    min_pixels = int(cfg["min_num_pixels"])
+    rel_tol = float(cfg["max_depth_error"])
+    min_cos = math.cos(math.radians(float(cfg["max_normal_error"])))
+    used = {name: np.zeros((views[name].height, views[name].width), bool) for name in names}
+    cache = _MapCache(workspace, 2 * n_neighbours + 2)
+    out: dict[str, list[np.ndarray]] = {"points": [], "normals": [], "colors": [], "support": []}
+    for name in names:
+        ref = views[name]
+        depth, normals = cache[name]
+        seeds = np.isfinite(depth) & ~used[name]
+        if not seeds.any():
+            continue
+        rows, cols = np.nonzero(seeds)
+        z_ref = depth[rows, cols].astype(np.float64)
+        rays = (np.stack([cols, rows, np.ones_like(cols)], -1).astype(np.float64)) @ np.linalg.inv(ref.K).T
+        world_rays = rays @ ref.rotation  # world directions of unit camera depth
+        points = ref.center + world_rays * z_ref[:, None]
+        n_ref_world = normals[rows, cols].astype(np.float64) @ ref.rotation
+        weight_ref = _precision(z_ref, baselines.get(name, 1.0))
+        weighted = weight_ref * z_ref
+        total = weight_ref.copy()
+        support = np.ones(len(rows), np.int32)
+        claims = []
+        for other in [n for n in neighbours.get(name, []) if n in mapped][:n_neighbours]:
+            view = views[other]
+            u, v, z = project(points, view.K, view.rotation, view.translation)
+            col, row = np.rint(u), np.rint(v)
+            inside = (z > 0) & (col >= 0) & (col < view.width) & (row >= 0) & (row < view.height)
+            idx = np.flatnonzero(inside)
+            r, c = row[idx].astype(int), col[idx].astype(int)
+            d_other, n_other = cache[other]
+            measured = d_other[r, c]
+            with np.errstate(invalid="ignore"):
+                agree = np.abs(measured - z[idx]) <= rel_tol * z[idx]
+            agree &= ~used[other][r, c]
+            agree &= (
+                np.einsum("ij,ij->i", n_other[r, c].astype(np.float64) @ view.rotation, n_ref_world[idx])
+                >= min_cos
+            )
+            idx, r, c = idx[agree], r[agree], c[agree]
+            # The neighbour's measured point, carried onto the reference's ray: its depth there.
+            other_points = back_project_pixels(view, c, r, measured[agree])
+            t = ((other_points - ref.center) * world_rays[idx]).sum(-1) / (world_rays[idx] ** 2).sum(-1)
+            w = _precision(measured[agree].astype(np.float64), baselines.get(other, 1.0))
+            weighted[idx] += w * t
+            total[idx] += w
+            support[idx] += 1
+            claims.append((other, idx, r, c))
+        keep = support >= min_pixels
+        fused_depth = weighted[keep] / total[keep]
+        out["points"].append(ref.center + world_rays[keep] * fused_depth[:, None])
+        out["normals"].append(n_ref_world[keep] / np.linalg.norm(n_ref_world[keep], axis=1, keepdims=True))
+        out["colors"].append(_colours(workspace, name, rows[keep], cols[keep]))
+        out["support"].append(support[keep])
+        used[name][rows, cols] = True
+        for other, idx, r, c in claims:
+            fused = keep[idx]
+            used[other][r[fused], c[fused]] = True
+    if not out["points"]:
+        return {key: np.zeros((0, 3)) for key in ("points", "normals", "colors")} | {
+            "support": np.zeros(0, int)
+        }
+    return {key: np.concatenate(value) for key, value in out.items()}
+
+
+def back_project_pixels(view, cols: np.ndarray, rows: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """World points (N, 3) of pixels (``cols``, ``rows``) at depths ``depth`` along the optical axis."""
+    rays = np.stack([cols, rows, np.ones_like(cols)], -1).astype(np.float64) @ np.linalg.inv(view.K).T
+    return view.center + (rays * np.asarray(depth, np.float64)[:, None]) @ view.rotation
+
+
+def _precision(depth: np.ndarray, baseline_m: float) -> np.ndarray:
+    """The stereo model's 1 / sigma_z^2 up to a constant: (B / z^2)^2 (z, B in metres)."""
+    return (float(baseline_m) / np.maximum(depth, 1e-6) ** 2) ** 2
+
+
+def _colours(workspace: Path, name: str, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    image = cv2.imread(str(Path(workspace) / "images" / name), cv2.IMREAD_COLOR)
+    if image is None:
+        return np.full((len(rows), 3), 0.5)
+    return image[rows, cols, ::-1].astype(np.float64) / 255.0

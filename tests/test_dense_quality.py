@@ -1,0 +1,217 @@
+"""The dense stage rewards redundancy: the oracle's depth, its noise model, edge filtering and the
+fusion along rays on a box world whose views all have the same quality."""
+
+from __future__ import annotations
+
+import math
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+import trimesh
+
+from reconstruct.dense import View, fuse, normals_from_depth, write_maps
+from reconstruct.depth_filter import edge_pixels, geometric_support
+from reconstruct.fusion_support import supported_points
+from reconstruct.oracle import oracle_view, stereo_depth_sigma
+from scene.camera import Intrinsics, cam_from_world, look_at
+from scene.enclosure import raycasting_scene
+from tests.test_reconstruct import box_world_mesh, reconstruct_cfg
+
+INTR = Intrinsics(320, 240, 60.0)
+
+
+def opencv_view(name: str, viewpoint) -> View:
+    K = INTR.K.copy()
+    K[0, 2] -= 0.5
+    K[1, 2] -= 0.5
+    rot, t = cam_from_world(np.asarray(viewpoint, float))
+    return View(name, K, rot, t, INTR.width, INTR.height)
+
+
+# ----------------------------------------------------------------------------- the oracle
+
+
+def test_the_oracle_depth_of_a_plane_is_the_analytic_depth():
+    """A 40 x 40 m ground plane z = 0 seen from 20 m at a 45 deg pitch: depth z(v) along the axis."""
+    plane = trimesh.Trimesh(
+        [[-200, -200, 0], [200, -200, 0], [200, 200, 0], [-200, 200, 0]], [[0, 1, 2], [0, 2, 3]]
+    )
+    view = opencv_view("a", [0.0, 0.0, 20.0, 90.0, -45.0])
+    depth, normals = oracle_view(
+        raycasting_scene(plane),
+        view.center,
+        view.K,
+        view.rotation,
+        (view.width, view.height),
+        1.0,
+        0.0,
+        np.random.default_rng(0),
+    )
+    u, v = np.meshgrid(np.arange(view.width, dtype=float), np.arange(view.height, dtype=float))
+    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(view.K).T @ view.rotation
+    truth = -view.center[2] / rays[..., 2]  # rays have unit camera depth: t is the depth
+    hit = truth > 0
+    assert np.isfinite(depth[hit]).all() and np.isnan(depth[~hit]).all()
+    np.testing.assert_allclose(depth[hit], truth[hit], rtol=1e-5)
+    # The plane's normal +z in the camera frame, facing the camera: R @ (0, 0, 1) (pointing up, at it).
+    np.testing.assert_allclose(
+        normals[hit], np.broadcast_to(view.rotation[:, 2], normals[hit].shape), atol=1e-6
+    )
+
+
+def test_the_oracle_noise_is_the_stereo_model_sigma():
+    """Nadir over a plane 20 m below, baseline 2 m, 0.5 px: sigma_z = 20^2 / (277.13 x 2) x 0.5 m."""
+    plane = trimesh.Trimesh(
+        [[-200, -200, 0], [200, -200, 0], [200, 200, 0], [-200, 200, 0]], [[0, 1, 2], [0, 2, 3]]
+    )
+    view = opencv_view("a", [0.0, 0.0, 20.0, 90.0, -90.0])
+    f = 0.5 * 320 / math.tan(math.radians(30.0))
+    assert f == pytest.approx(277.128, abs=1e-3)
+    hand = 20.0**2 / (f * 2.0) * 0.5
+    assert hand == pytest.approx(0.36084, abs=1e-5)
+    assert stereo_depth_sigma(20.0, f, 2.0, 0.5) == pytest.approx(hand)
+    depth, _ = oracle_view(
+        raycasting_scene(plane),
+        view.center,
+        view.K,
+        view.rotation,
+        (view.width, view.height),
+        2.0,
+        0.5,
+        np.random.default_rng(1),
+    )
+    residual = depth - 20.0  # a nadir view of a level plane: every pixel's depth is the height
+    assert np.std(residual) == pytest.approx(hand, rel=0.01)
+    assert abs(np.mean(residual)) < 0.01
+
+
+# ----------------------------------------------------------------------------- redundancy
+
+
+def fattened(depth: np.ndarray, px: int) -> np.ndarray:
+    """Block matching's foreground fattening: background pixels within ``px`` of a nearer surface
+    (5 % nearer) take its depth."""
+    near = cv2.erode(
+        np.where(np.isfinite(depth), depth, np.inf).astype(np.float32), np.ones((2 * px + 1,) * 2, np.uint8)
+    )
+    out = depth.copy()
+    grow = np.isfinite(near) & (near < 0.95 * np.nan_to_num(depth, nan=np.inf))
+    out[grow] = near[grow]
+    return out
+
+
+def box_flight(n_views: int) -> list[View]:
+    """``n_views`` views 12 m from the box world's centre, 7 m up, spread over the same 70 deg arc."""
+    angles = np.radians(np.linspace(-35.0, 35.0, n_views)) - np.pi / 2
+    return [
+        opencv_view(
+            f"{i:06d}.png", look_at([12 * np.cos(a), 12 * np.sin(a), 7.0], [0.0, 0.0, 2.0]).as_array()
+        )
+        for i, a in enumerate(angles)
+    ]
+
+
+def fused_error_p90(tmp_path: Path, n_views: int, edge_margin: int, method: str) -> float:
+    """90th percentile distance (m) of the fused cloud to the true boxes: views of one quality
+    (oracle depth, 0.05 px at a 3 m baseline, 3 px fattening), ``edge_margin`` filtering, fusion
+    ``method``."""
+    mesh = box_world_mesh()
+    workspace = tmp_path / f"ws_{n_views}_{edge_margin}_{method}"
+    shutil.rmtree(workspace, ignore_errors=True)
+    (workspace / "images").mkdir(parents=True)
+    views = box_flight(n_views)
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(INTR.to_colmap())
+    points = trimesh.sample.sample_surface(mesh, 3000, seed=1)[0]
+    points = points[(np.abs(points[:, 0]) < 6) & (np.abs(points[:, 1]) < 6)]
+    for i, view in enumerate(views):
+        cam = points @ view.rotation.T + view.translation
+        keypoints = cam[:, :2] / cam[:, 2:] * INTR.focal_px + [INTR.cx, INTR.cy]
+        image = pycolmap.Image(name=view.name, keypoints=keypoints, camera_id=1, image_id=i + 1)
+        rec.add_image_with_trivial_frame(
+            image, pycolmap.Rigid3d(pycolmap.Rotation3d(view.rotation), view.translation)
+        )
+    for k, xyz in enumerate(points):
+        track = pycolmap.Track()
+        for i in range(len(views)):
+            track.add_element(i + 1, k)
+        rec.add_point3D(xyz, track)
+    (workspace / "sparse").mkdir()
+    rec.write(workspace / "sparse")
+    scene = raycasting_scene(mesh)
+    rng = np.random.default_rng(0)
+    for view in views:
+        cv2.imwrite(
+            str(workspace / "images" / view.name), np.full((INTR.height, INTR.width, 3), 128, np.uint8)
+        )
+        depth, _ = oracle_view(
+            scene, view.center, view.K, view.rotation, (view.width, view.height), 3.0, 0.05, rng
+        )
+        depth = fattened(depth, 3)
+        depth[edge_pixels(depth, edge_margin)] = np.nan
+        write_maps(workspace, view.name, depth, normals_from_depth(depth, view.K, 5))
+    cfg = reconstruct_cfg(**{"dense.fusion.method": method}).dense
+    fuse(workspace, workspace / "fused.ply", cfg, [v.name for v in views], deterministic=True)
+    cloud = trimesh.load(workspace / "fused.ply").vertices
+    sample = cloud[np.random.default_rng(0).choice(len(cloud), min(len(cloud), 20000), replace=False)]
+    return float(np.percentile(trimesh.proximity.closest_point(mesh, sample)[1], 90))
+
+
+def test_coordinate_median_fusion_gets_worse_as_views_are_added(tmp_path):
+    """The former stage: COLMAP fusion of fattened maps, 3 then 12 views of the same quality."""
+    few, many = fused_error_p90(tmp_path, 3, 0, "colmap"), fused_error_p90(tmp_path, 12, 0, "colmap")
+    assert few == pytest.approx(0.0220, abs=0.002)
+    assert many == pytest.approx(0.0392, abs=0.003)
+
+
+def test_edge_filtered_ray_fusion_gets_no_worse_as_views_are_added(tmp_path):
+    few, mid, many = (fused_error_p90(tmp_path, n, 3, "rays") for n in (3, 6, 12))
+    assert few == pytest.approx(0.0074, abs=0.001)
+    assert many <= mid <= few  # 7.4, 7.2, 6.5 mm when measured
+    assert many == pytest.approx(0.0065, abs=0.001)
+
+
+# ----------------------------------------------------------------------------- filters
+
+
+def test_edge_pixels_lie_within_the_margin_of_a_depth_jump():
+    depth = np.full((20, 30), 10.0, np.float32)
+    depth[:, 15:] = 12.0  # a 20 % jump between columns 14 and 15
+    edge = edge_pixels(depth, 2)
+    assert edge[:, 13:17].all() and not edge[:, :13].any() and not edge[:, 17:].any()
+    assert not edge_pixels(depth, 0).any()
+    small = np.full((20, 30), 10.0, np.float32)
+    small[:, 15:] = 10.3  # 3 %: a slanted surface, not an occlusion edge
+    assert not edge_pixels(small, 2).any()
+
+
+def test_geometric_support_counts_the_views_that_measured_the_point():
+    plane = trimesh.Trimesh(
+        [[-200, -200, 0], [200, -200, 0], [200, 200, 0], [-200, 200, 0]], [[0, 1, 2], [0, 2, 3]]
+    )
+    scene = raycasting_scene(plane)
+    views = [opencv_view(str(i), [x, 0.0, 20.0, 90.0, -90.0]) for i, x in enumerate((0.0, 2.0, 4.0))]
+    maps = [
+        oracle_view(
+            scene, v.center, v.K, v.rotation, (v.width, v.height), 1.0, 0.0, np.random.default_rng(0)
+        )[0]
+        for v in views
+    ]
+    wrong = maps[2] * 1.05  # the third view measured 5 % too far everywhere
+    support = geometric_support(views[0], maps[0], [(views[1], maps[1]), (views[2], wrong)], 0.01)
+    seen_by_1 = np.isfinite(maps[0])
+    assert support.max() == 1  # the second view agrees where it sees the point, the third never does
+    assert support[seen_by_1].mean() > 0.8
+
+
+def test_the_support_filter_drops_weakly_supported_points_beside_strong_ones():
+    points = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [1.0, 0.0, 0.0], [1.01, 0.0, 0.0]])
+    support = np.array([12, 3, 3, 2])
+    keep = supported_points(points, support, 0.03, 0.5)
+    # 3 of a neighbour's 12 is dropped; a sparse flight's 3 and 2 views (no better neighbour) stay.
+    assert keep.tolist() == [True, False, True, True]
+    assert supported_points(points, support, 0.03, 0.0).all()
