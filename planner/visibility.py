@@ -24,7 +24,13 @@ import trimesh
 
 from planner.sampling import validate_proxy
 from scene.camera import Intrinsics, forward_vectors, validate_viewpoint_array
-from scene.enclosure import ENCLOSED_BACK_FRACTION, GRID_DIRECTIONS, enclosed_positions, raycasting_scene
+from scene.enclosure import (
+    ENCLOSED_BACK_FRACTION,
+    ENCLOSED_DIRECTIONS,
+    GRID_DIRECTIONS,
+    enclosed_positions,
+    raycasting_scene,
+)
 from scene.plan import PlanningError
 
 # Rows per chunk of the (V, P) geometry: bounds the float temporaries to ~ 64 MB at P = 2048.
@@ -297,7 +303,7 @@ class VisibilityModel:
     ) -> np.ndarray:
         """(N,) bool: positions (N, 3) inside a closed part of the proxy (``scene.enclosure``)."""
         q = np.asarray(positions, dtype=np.float32).reshape(-1, 3)
-        self.rays_cast += len(q) * len(GRID_DIRECTIONS)
+        self.rays_cast += len(q) * (len(GRID_DIRECTIONS) + ENCLOSED_DIRECTIONS)
         return enclosed_positions(self._scene, q, min_back_fraction)
 
     def clearance(self, positions: np.ndarray) -> np.ndarray:

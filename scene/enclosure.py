@@ -35,23 +35,39 @@ def enclosed_positions(
     positions: np.ndarray,
     min_back_fraction: float = ENCLOSED_BACK_FRACTION,
 ) -> np.ndarray:
-    """(N,) bool: positions (N, 3) inside a closed part of the mesh.
+    """(N,) bool: positions (N, 3) inside a closed part of the mesh, whatever its faces' orientation.
 
-    From each position rays leave along the 26 directions of a 3 x 3 x 3 grid; a position is
-    enclosed when at least ``min_back_fraction`` of them first hit the mesh from behind (the ray
-    runs along the hit face's outward normal: it left an interior). A camera under an eave or in a
-    courtyard sees open sky or outer faces along most rays; one inside a hall does not.
+    Two tests, either enough:
+
+    - **Back faces**: rays along the 26 directions of a 3 x 3 x 3 grid; at least
+      ``min_back_fraction`` of them first hit the mesh from behind (the ray runs along the hit
+      face's outward normal: it left an interior).
+    - **No way out**: of ``ENCLOSED_DIRECTIONS`` rays spread evenly over the sphere, at least
+      ``ENCLOSED_HIT_FRACTION`` hit the mesh at all, front or back. A hall whose interior walls
+      face inwards (a scan of a building with its rooms) passes the first test's sight lines as
+      front faces; from its inside almost no ray escapes (a door or windows: a few per cent of the
+      sphere), while a camera in a courtyard sees the sky above it and one under an eave the open
+      side, a quarter or more of the sphere.
     """
     q = np.asarray(positions, dtype=np.float32).reshape(-1, 3)
     if len(q) == 0:
         return np.zeros(0, bool)
-    dirs = GRID_DIRECTIONS
-    rays = np.concatenate([np.repeat(q, len(dirs), axis=0), np.tile(dirs, (len(q), 1))], axis=1)
+    hit, back = _first_hits(scene, q, GRID_DIRECTIONS)
+    behind = back.mean(axis=1) >= float(min_back_fraction)
+    hit_any, _ = _first_hits(scene, q, SPHERE_DIRECTIONS)
+    return behind | (hit_any.mean(axis=1) >= ENCLOSED_HIT_FRACTION)
+
+
+def _first_hits(scene, positions: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, D) bool each: whether the ray from each position along each direction hits the mesh,
+    and whether it hits a face from behind."""
+    rays = np.concatenate(
+        [np.repeat(positions, len(dirs), axis=0), np.tile(dirs, (len(positions), 1))], axis=1
+    )
     hits = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))
     hit = np.isfinite(hits["t_hit"].numpy())
-    normals = hits["primitive_normals"].numpy()
-    back = hit & (np.einsum("ij,ij->i", normals, rays[:, 3:]) > 0)
-    return back.reshape(len(q), len(dirs)).mean(axis=1) >= float(min_back_fraction)
+    back = hit & (np.einsum("ij,ij->i", hits["primitive_normals"].numpy(), rays[:, 3:]) > 0)
+    return hit.reshape(len(positions), len(dirs)), back.reshape(len(positions), len(dirs))
 
 
 def sphere_directions(n: int) -> np.ndarray:
@@ -61,6 +77,14 @@ def sphere_directions(n: int) -> np.ndarray:
     r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
     phi = np.pi * (1.0 + 5.0**0.5) * i
     return np.column_stack([r * np.cos(phi), r * np.sin(phi), z]).astype(np.float32)
+
+
+# The "no way out" test of enclosed_positions: 64 directions (each about 1/64 of the sphere, 0.2 sr)
+# and the share that must hit: 61 of 64, so a door or a row of windows (up to 3 of them) still
+# reads inside, and a courtyard's sky or an eave's open side (16 or more) reads outside.
+ENCLOSED_DIRECTIONS = 64
+ENCLOSED_HIT_FRACTION = 61 / 64
+SPHERE_DIRECTIONS = sphere_directions(ENCLOSED_DIRECTIONS)
 
 
 # exposed_samples(): first-hop rays per sample (over its half-space; a wall sample under an eave

@@ -89,6 +89,15 @@ def test_the_oracle_noise_is_the_stereo_model_sigma():
     assert abs(np.mean(residual)) < 0.01
 
 
+def test_the_oracle_without_a_ground_truth_is_refused_before_any_work(tmp_path):
+    from reconstruct.dense import dense_reconstruct
+
+    cfg = reconstruct_cfg(**{"dense.backend": "oracle"}).dense
+    with pytest.raises(ValueError, match="backend=oracle needs the ground truth"):
+        dense_reconstruct(tmp_path / "sparse", tmp_path / "images", tmp_path / "out", cfg)
+    assert not (tmp_path / "out").exists()
+
+
 # ----------------------------------------------------------------------------- redundancy
 
 

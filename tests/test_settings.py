@@ -47,6 +47,11 @@ def composed(*overrides: str):
         (["+reconstruct.dense.num_partner=3"], "num_partner"),
         (["reconstruct.proxy.dense.max_image_size=0"], "reconstruct.proxy.dense.max_image_size"),
         (["evaluate.gt_sample_density_per_m2=-5"], "gt_sample_density_per_m2"),
+        (["reconstruct.dense.oracle.disparity_sigma_px=-1"], "reconstruct.dense.oracle.disparity_sigma_px"),
+        (["reconstruct.dense.oracle.disparity_sigma_px=nan"], "reconstruct.dense.oracle.disparity_sigma_px"),
+        (["reconstruct.dense.fusion.max_memory_gb=0.01"], "reconstruct.dense.fusion.max_memory_gb=0.01 holds"),
+        (["reconstruct.dense.fusion.max_memory_gb=lots"], "reconstruct.dense.fusion.max_memory_gb"),
+        (["reconstruct.dense.fusion.method=voxels"], "reconstruct.dense.fusion.method"),
     ],
 )
 def test_a_bad_setting_is_refused_by_name(overrides, named):
@@ -100,7 +105,7 @@ def test_typed_blocks_keep_the_yaml_values():
     dense = DenseSettings.from_config(cfg.reconstruct.dense)
     sfm = SfmSettings.from_config(cfg.reconstruct.sfm)
     assert (dense.num_partners, dense.fusion.min_num_pixels, dense.sgbm.block_size) == (4, 3, 5)
-    assert dense.fusion.max_memory_gb is None
+    assert dense.fusion.max_memory_gb == "auto"
     assert (sfm.mapping.local_ba_num_images, sfm.matching.max_ratio, sfm.extraction.max_num_features) == (
         4,
         0.8,
