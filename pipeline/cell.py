@@ -18,6 +18,7 @@ from collections.abc import Mapping
 from pathlib import Path
 
 import hydra
+import numpy as np
 import trimesh
 from omegaconf import DictConfig, OmegaConf
 
@@ -55,6 +56,7 @@ def plan_stage(
     evaluation: EvaluationSettings,
     target_gsd_m: float,
     out_dir: Path,
+    flight_order: str = "planner",
 ) -> tuple[Plan, dict]:
     """Plan on the proxy, check it against the drone, forecast it, time it; write ``out_dir``.
 
@@ -64,6 +66,8 @@ def plan_stage(
         evaluation: the surface classes the forecast reports (``evaluate``).
         target_gsd_m: the survey's GSD (m/px): the forecast's d_t.
         out_dir: the plan folder (``viewpoints.csv``, ``plan.json``).
+        flight_order: ``flight_time``: every planner's views re-ordered by the same flight-time
+            TSP (``ordered_by_flight_time``); ``planner``: each planner's own order.
 
     Returns:
         (the plan, the ``metrics.json`` fields: ``plan_time_s``, the forecast, ``n_viewpoints``,
@@ -76,6 +80,8 @@ def plan_stage(
     plan = plan_fn(proxy, intrinsics, params, seed)
     record: dict = {"plan_time_s": time.perf_counter() - start}
     validate_plan(plan, proxy, drone)  # whoever made it: nothing unflyable is rendered
+    if flight_order == "flight_time":
+        plan = ordered_by_flight_time(plan, drone)
     target_distance = float(target_gsd_m) * intrinsics.focal_px
     forecast = predicted_coverage(proxy, plan.viewpoints, intrinsics, target_distance, evaluation)
     plan.info["predicted_coverage"] = {"criteria": FORECAST_CRITERIA, **forecast}
@@ -126,6 +132,24 @@ def oracle_stage(
     }
 
 
+def ordered_by_flight_time(plan: Plan, drone: DroneSettings) -> Plan:
+    """The plan's views in the order that flies them fastest (``planner.trajectory``), from the
+    take-off point the missions use (``drone.takeoff_xy``, or the ground under the planner's first
+    view, which then stays first); ``info`` keeps the planner's own order's flight time."""
+    from drone.model import default_takeoff
+    from planner.trajectory import order_by_flight_time
+
+    vps = np.asarray(plan.viewpoints, dtype=float)
+    first = 0 if drone.takeoff_xy is None else None
+    order = order_by_flight_time(vps, default_takeoff(vps, drone), drone, first=first)
+    info = {
+        **plan.info,
+        "flight_order": "flight_time",
+        "planner_order_flight_time_s": flight_summary(vps, drone)["flight_time_s"],
+    }
+    return Plan(vps[order], [plan.kinds[i] for i in order], plan.planner, info)
+
+
 def run_cell(cfg: DictConfig, run_dir: Path, record: dict) -> None:
     """Chain the stages for one (scene, planner, seed) cell; fill ``record`` as they complete.
 
@@ -164,6 +188,7 @@ def run_cell(cfg: DictConfig, run_dir: Path, record: dict) -> None:
         settings.evaluation,
         settings.target_gsd_m,
         run_dir / "plan",
+        str(cfg.survey.get("flight_order", "planner")),
     )
     record.update(plan_record)
 

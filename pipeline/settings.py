@@ -24,6 +24,8 @@ from scene.camera import Intrinsics
 from scene.config import plain
 from scene.plan import PlanningError
 
+FLIGHT_ORDERS = ("flight_time", "planner")
+
 
 class SettingsError(ValueError):
     """A setting of the run config is out of range or unknown (the message names it)."""
@@ -114,6 +116,9 @@ def cell_settings(cfg: DictConfig) -> CellSettings:
         except (TypeError, ValueError) as exc:
             raise ValueError(f"camera: {exc}") from exc
         drone = DroneSettings.from_config(plain(cfg.drone))
+        order = OmegaConf.select(cfg, "survey.flight_order", default="planner")
+        if order not in FLIGHT_ORDERS:
+            raise ValueError(f"survey.flight_order must be one of {FLIGHT_ORDERS}, got {order!r}")
         params, budget = planner_setup(cfg)
         check_planner(str(cfg.planner._target_), params, intrinsics)
         SfmSettings.from_config(cfg.reconstruct.sfm)

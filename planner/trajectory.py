@@ -98,3 +98,68 @@ def flight_length(ordered_positions: np.ndarray, start=None, return_home: bool =
     start = np.asarray(start, dtype=float).reshape(1, 3)
     legs = [start, pos, start] if return_home else [start, pos]
     return polyline_length(np.concatenate(legs))
+
+
+def flight_time_costs(viewpoints: np.ndarray, takeoff: np.ndarray, drone) -> np.ndarray:
+    """(V + 1, V + 1) seconds of each hop of a flight, node 0 the take-off point (on the ground):
+    ``cost[i, j]`` is the leg from node i to node j (``drone.model.legs_time_s``: acceleration,
+    cruise, climb and descent rates) plus, arriving at a waypoint from another, the yaw and gimbal
+    turn between their attitudes; the photo time is the same for every order and left out."""
+    from drone.model import legs_time_s
+
+    vps = np.asarray(viewpoints, dtype=float).reshape(-1, 5)
+    nodes = np.concatenate([np.asarray(takeoff, float).reshape(1, 3), vps[:, :3]])
+    n = len(nodes)
+    starts = np.repeat(nodes, n, axis=0)
+    ends = np.tile(nodes, (n, 1))
+    cost = legs_time_s(starts, ends, drone).reshape(n, n)
+    turn = np.abs((vps[None, :, 3] - vps[:, None, 3] + 180.0) % 360.0 - 180.0) / drone.yaw_rate_deg_s
+    tilt = np.abs(vps[None, :, 4] - vps[:, None, 4]) / drone.gimbal_rate_deg_s
+    cost[1:, 1:] += np.maximum(turn, tilt)
+    np.fill_diagonal(cost, 0.0)
+    return cost
+
+
+def order_by_flight_time(viewpoints: np.ndarray, takeoff: np.ndarray, drone, first=None, runs: int = 3):
+    """Visiting order (V,) that minimises the flight time from take-off through every viewpoint and
+    back (an asymmetric TSP on ``flight_time_costs``, solved by LKH: climbing and descending differ).
+
+    Args:
+        viewpoints: (V, 5) x, y, z (m), yaw, pitch (deg).
+        takeoff: (3,) take-off point (m).
+        drone: the drone (``drone.model.DroneSettings``).
+        first: a viewpoint index the flight must visit first (the one the take-off point lies
+            under, when the take-off point is defined by the first waypoint); None: any.
+        runs: LKH restarts.
+    """
+    vps = np.asarray(viewpoints, dtype=float).reshape(-1, 5)
+    n = len(vps)
+    if n == 0:
+        raise PlanningError("cannot order an empty viewpoint set")
+    if not np.isfinite(vps).all():
+        raise PlanningError("viewpoints must be finite to be ordered")
+    if n == 1:
+        return np.zeros(1, dtype=np.intp)
+    cost = flight_time_costs(vps, takeoff, drone)
+    if first is not None:
+        # Leaving the take-off point for any other viewpoint costs more than any whole tour.
+        others = np.ones(n + 1, bool)
+        others[[0, int(first) + 1]] = False
+        cost[0, others] += float(cost.sum()) + 1.0
+    if n == 2:
+        forward = cost[0, 1] + cost[1, 2] + cost[2, 0]
+        backward = cost[0, 2] + cost[2, 1] + cost[1, 0]
+        return np.array([0, 1] if forward <= backward else [1, 0], dtype=np.intp)
+    tour = elkai.DistanceMatrix(_int_matrix(cost)).solve_tsp(runs=int(runs))[:-1]
+    k = tour.index(0)
+    order = np.asarray(tour[k + 1 :] + tour[:k], dtype=np.intp) - 1
+    if sorted(order.tolist()) != list(range(n)):
+        raise PlanningError("TSP solver returned an invalid tour")
+    return order
+
+
+def tour_time_s(viewpoints: np.ndarray, order, takeoff: np.ndarray, drone) -> float:
+    """Seconds of the closed flight take-off -> ``order`` -> take-off on ``flight_time_costs``."""
+    cost = flight_time_costs(viewpoints, takeoff, drone)
+    path = [0, *(np.asarray(order, int) + 1), 0]
+    return float(sum(cost[a, b] for a, b in zip(path[:-1], path[1:], strict=True)))

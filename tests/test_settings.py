@@ -52,6 +52,7 @@ def composed(*overrides: str):
         (["reconstruct.dense.fusion.max_memory_gb=0.01"], "reconstruct.dense.fusion.max_memory_gb=0.01 holds"),
         (["reconstruct.dense.fusion.max_memory_gb=lots"], "reconstruct.dense.fusion.max_memory_gb"),
         (["reconstruct.dense.fusion.method=voxels"], "reconstruct.dense.fusion.method"),
+        (["survey.flight_order=alphabetical"], "survey.flight_order"),
     ],
 )
 def test_a_bad_setting_is_refused_by_name(overrides, named):
