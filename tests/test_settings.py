@@ -49,7 +49,7 @@ def composed(*overrides: str):
         (["evaluate.gt_sample_density_per_m2=-5"], "gt_sample_density_per_m2"),
         (["reconstruct.dense.oracle.disparity_sigma_px=-1"], "reconstruct.dense.oracle.disparity_sigma_px"),
         (["reconstruct.dense.oracle.disparity_sigma_px=nan"], "reconstruct.dense.oracle.disparity_sigma_px"),
-        (["reconstruct.dense.fusion.max_memory_gb=0.01"], "reconstruct.dense.fusion.max_memory_gb=0.01 holds"),
+        (["reconstruct.dense.fusion.max_memory_gb=0.01"], "max_memory_gb=0.01 holds fewer than two views"),
         (["reconstruct.dense.fusion.max_memory_gb=lots"], "reconstruct.dense.fusion.max_memory_gb"),
         (["reconstruct.dense.fusion.method=voxels"], "reconstruct.dense.fusion.method"),
         (["survey.flight_order=alphabetical"], "survey.flight_order"),
