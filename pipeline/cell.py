@@ -85,6 +85,13 @@ def plan_stage(
     target_distance = float(target_gsd_m) * intrinsics.focal_px
     forecast = predicted_coverage(proxy, plan.viewpoints, intrinsics, target_distance, evaluation)
     plan.info["predicted_coverage"] = {"criteria": FORECAST_CRITERIA, **forecast}
+    budget = plan.info.get("budget")
+    if isinstance(budget, dict) and budget.get("unconstrained_viewpoints"):
+        # What the budget gave up: the forecast of the plan the objective asked for.
+        unconstrained = np.asarray(budget["unconstrained_viewpoints"], dtype=float)
+        budget["unconstrained_forecast"] = predicted_coverage(
+            proxy, unconstrained, intrinsics, target_distance, evaluation
+        )
     flight = flight_summary(plan.viewpoints, drone)
     plan.info.update(flight)
     record.update(forecast)

@@ -39,6 +39,7 @@ from planner.cmaes_refine import refine_clusters
 from planner.culling import cull
 from planner.heuristics import global_score
 from planner.objective import ObjectiveState
+from planner.ours_budget import fit_budget
 from planner.ours_settings import OursSettings
 from planner.sampling import sample_surface, validate_proxy
 from planner.trajectory import flight_length, order_viewpoints
@@ -49,13 +50,16 @@ from scene.plan import Plan, PlanningError
 
 def _yaml_defaults() -> dict:
     """``conf/planner/ours.yaml`` (the one place ours' settings and their reasons live), with the
-    shared target GSD taken from ``conf/config.yaml``; the config-only keys
+    shared target GSD taken from ``conf/config.yaml`` and the drone from ``conf/drone``; the config-only keys
     (``planner.budget.CONFIG_KEYS``) dropped."""
     from omegaconf import OmegaConf
 
     conf = Path(__file__).resolve().parents[1] / "conf"
     survey = OmegaConf.load(conf / "config.yaml").survey
-    merged = OmegaConf.create({"survey": survey, "ours": OmegaConf.load(conf / "planner" / "ours.yaml")})
+    drone = OmegaConf.load(conf / "drone" / "default.yaml")
+    merged = OmegaConf.create(
+        {"survey": survey, "drone": drone, "ours": OmegaConf.load(conf / "planner" / "ours.yaml")}
+    )
     out = OmegaConf.to_container(merged.ours, resolve=True)
     return {k: v for k, v in out.items() if k not in CONFIG_KEYS}
 
@@ -85,6 +89,10 @@ def resolve_params(params: Mapping | None) -> dict:
 
     merge(out, params, "")
     return out
+
+
+# A budget above the plan's own size adds at most this many detail views per sampled point.
+MAX_FILL_VIEWS = 4
 
 
 def check_params(params: Mapping | None, intrinsics: Intrinsics) -> None:
@@ -395,8 +403,44 @@ def plan_with(
         kinds = [s for s, k in zip(kinds, kept, strict=True) if k]
         rec.record("coverage_culling", r, cstate, kinds, **_drop_time(stats))
 
-    # ------------------------------------------------------------------ final score and order
+    # ------------------------------------------------------------------ the crew's budget
+    cap = settings.budget.max_images
+    k_fill = det_params.k_count
+    while cap is not None and len(viewpoints) < cap and k_fill < det_params.k_count + MAX_FILL_VIEWS:
+        # A budget above what the objective asks for: one more detail view per sampled point.
+        k_fill += 1
+        stats = _add_viewpoints(
+            state,
+            viewpoints,
+            kinds,
+            "detail",
+            det_model,
+            lambda i: detail_group(i, det_model, limits, det_settings),
+            k_fill,
+            np.zeros(n_points, bool),
+            float(add["repair_threshold"]),
+            0,
+            True,
+            f"budget fill (k {k_fill})",
+        )
+        rec.record("budget_fill", k_fill, state, kinds, **stats)
+        if not stats["added"]:
+            break
     vps = np.asarray(viewpoints)
+    budget = None
+    if settings.budget.active:
+        t0 = time.perf_counter()
+        final_state = ObjectiveState(
+            det_params, n_points, mode="detail", points=points, point_weights=weights
+        )
+        final_state.reset(cov_model.observe(vps))
+        kept, budget = fit_budget(
+            final_state, vps, kinds, settings.budget, settings.drone, takeoff, int(cfg["tsp_runs"])
+        )
+        budget |= {"unconstrained_viewpoints": vps.tolist(), "time_s": time.perf_counter() - t0}
+        vps, kinds = vps[kept], [k for k, keep in zip(kinds, kept, strict=True) if keep]
+
+    # ------------------------------------------------------------------ final score and order
     # The final R: Eq. 10 with the detail heuristics over every view, seen within the coverage
     # range (the detail range would make every coverage view see nothing). Far coverage views widen
     # the angular spread of Eq. 4, so this is usually below ``final_detail_pass``.
@@ -434,6 +478,8 @@ def plan_with(
         "flight_length_from_takeoff_m": flight_length(vps[:, :3], takeoff),
         "plan_time_s": total,
     }
+    if budget is not None:
+        info["budget"] = budget
     if evidence is not None:
         info["evidence"] = evidence
     if time_term is not None:

@@ -30,7 +30,7 @@ from scene.camera import Intrinsics
 from scene.plan import Plan, PlanningError
 from scene.proxy_mesh import PROXY_CLOUD_KEY
 
-EXTRA_SECTIONS = ("evidence", "flight_time", "drone")
+EXTRA_SECTIONS = ("evidence", "flight_time")
 
 
 def evidence_weigher(proxy: trimesh.Trimesh, settings: EvidenceSettings):
@@ -76,8 +76,8 @@ def _parsed(params: Mapping) -> tuple[EvidenceSettings, float, DroneSettings, di
         raise PlanningError(
             f"planner ours_plus: flight_time.weight_per_pct must be >= 0, got {weight_per_pct}"
         )
-    drone = DroneSettings.from_config(raw.pop("drone"))
-    return evidence, weight_per_pct, drone, resolve_params(raw)
+    cfg = resolve_params(raw)  # the drone is ours' too (budget_limit)
+    return evidence, weight_per_pct, DroneSettings.from_config(cfg["drone"]), cfg
 
 
 def check_params(params: Mapping, intrinsics: Intrinsics) -> None:

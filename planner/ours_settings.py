@@ -17,9 +17,19 @@ import numpy as np
 from planner.candidates import CandidateSettings, FlightLimits
 from planner.cmaes_refine import CmaSettings
 from planner.heuristics import HeuristicParams
+from planner.ours_budget import BudgetLimit
 from planner.visibility import VisibilityLimits
 from scene.camera import Intrinsics
 from scene.plan import PlanningError
+
+
+def _drone(node):
+    from drone.model import DroneError, DroneSettings
+
+    try:
+        return DroneSettings.from_config(node) if node is not None else DroneSettings.default()
+    except DroneError as exc:
+        raise PlanningError(f"planner ours: {exc}") from exc
 
 
 def _number(cfg: Mapping, *path: str):
@@ -88,6 +98,7 @@ class OursSettings:
         cma_det, cma_cov: the CMA-ES settings of the two passes.
         n_points: surface samples.
         takeoff: [x, y, z] (m), or None for the proxy's lowest corner on the ground.
+        budget: the crew's budget (``planner.ours_budget``); ``drone`` the drone it is flown on.
     """
 
     cfg: dict
@@ -104,6 +115,8 @@ class OursSettings:
     cma_cov: CmaSettings
     n_points: int
     takeoff: tuple[float, float, float] | None
+    budget: BudgetLimit
+    drone: object
 
     @classmethod
     def build(cls, cfg: dict, intrinsics: Intrinsics) -> OursSettings:
@@ -214,4 +227,6 @@ class OursSettings:
             cma_cov=cma_cov,
             n_points=int(cfg["n_points"]),
             takeoff=takeoff,
+            budget=BudgetLimit.from_config(cfg.get("budget_limit")),
+            drone=_drone(cfg.get("drone")),
         )

@@ -78,8 +78,11 @@ def test_defaults_are_the_config_file():
     assert cfg["target_gsd_m"] == "${survey.target_gsd_m}"
     survey = yaml.safe_load((ROOT / "conf" / "config.yaml").read_text())["survey"]
     cfg["target_gsd_m"] = survey["target_gsd_m"]
+    # and the drone from the run's drone group
+    assert cfg["drone"] == "${drone}"
+    cfg["drone"] = yaml.safe_load((ROOT / "conf" / "drone" / "default.yaml").read_text())
     assert cfg.pop("name") == "ours" and cfg.pop("_target_") == "planner.ours.plan"
-    assert cfg.pop("budget")["knob"] == "target_gsd_m"
+    assert cfg.pop("budget")["knob"] == "budget_limit.max_images"
     assert cfg == DEFAULTS
 
 
