@@ -20,6 +20,7 @@ COMMANDS = {
     "plan-stability": "experiments.plan_stability",
     "ours-plus-front": "experiments.ours_plus_front",
     "viewer": "experiments.viewer",
+    "photo-roundtrip": "experiments.photo_roundtrip",
 }
 
 

@@ -43,6 +43,30 @@ def run_cell_main(cfg: DictConfig) -> None:
         sys.exit(1)
 
 
+@hydra.main(version_base=None, config_path=str(CONF_DIR), config_name="photos")
+def plan_photos_main(cfg: DictConfig) -> None:
+    """The second flight from a folder of photos of the first (``pipeline.photo_survey``)."""
+    from pipeline.photo_survey import plan_from_photos
+
+    try:
+        plan_from_photos(cfg, Path(HydraConfig.get().runtime.output_dir))
+    except Exception as exc:
+        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+            raise
+        print(f"error: plan-photos {cfg.photos.dir}: {exc} (traceback: HYDRA_FULL_ERROR=1)", file=sys.stderr)
+        sys.exit(1)
+
+
+def _plan_photos(argv: Sequence[str]) -> int:
+    # ``uavplan plan-photos IMAGES_DIR [overrides]``: the folder is the first word without a '='.
+    argv = list(argv)
+    if argv and "=" not in argv[0] and not argv[0].startswith("-"):
+        argv[0] = f"photos.dir={argv[0]}"
+    sys.argv = ["uavplan plan-photos", *argv]
+    plan_photos_main()
+    return 0
+
+
 def _run(argv: Sequence[str]) -> int:
     # Hydra reads sys.argv itself: hand it the overrides alone.
     sys.argv = ["uavplan run", *argv]
@@ -78,8 +102,10 @@ def dispatch(prog: str, commands: Mapping[str, str], argv: Sequence[str] | None,
 
 
 def _summary(target: str) -> str:
-    if target.startswith("!"):
+    if target == "!_run":
         return "one cell or a sweep: Hydra overrides, as python run.py"
+    if target == "!_plan_photos":
+        return "IMAGES_DIR [overrides]: the second flight from a folder of a real first flight's photos"
     spec = importlib.util.find_spec(target)
     if spec is None or spec.origin is None:
         return ""
@@ -90,7 +116,7 @@ def _summary(target: str) -> str:
     return ""
 
 
-COMMANDS = {"run": "!_run"}
+COMMANDS = {"run": "!_run", "plan-photos": "!_plan_photos"}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -28,6 +28,8 @@ class Flight:
         rotations: (N, 3, 3) true ``cam_from_world`` rotations.
         translations: (N, 3) true ``cam_from_world`` translations in metres.
         kinds: N viewpoint labels.
+        gnss_measured: the positions are a real flight's GNSS fixes (``cameras.json`` says
+            ``"positions": "measured"``): they are the priors as they are, nothing is simulated.
     """
 
     image_dir: Path
@@ -36,6 +38,7 @@ class Flight:
     rotations: np.ndarray
     translations: np.ndarray
     kinds: tuple[str, ...]
+    gnss_measured: bool = False
 
     @property
     def positions(self) -> np.ndarray:
@@ -65,7 +68,13 @@ def read_flight(image_dir: str | Path) -> Flight:
             {"stage": "input", "n_images": len(cameras)},
         )
     return Flight(
-        image_dir, cameras.intrinsics, cameras.names, cameras.rotations, cameras.translations, cameras.kinds
+        image_dir,
+        cameras.intrinsics,
+        cameras.names,
+        cameras.rotations,
+        cameras.translations,
+        cameras.kinds,
+        gnss_measured=cameras.extra.get("positions") == "measured",
     )
 
 

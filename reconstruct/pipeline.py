@@ -225,7 +225,8 @@ def reconstruct_flight(image_dir, out_dir, cfg: Mapping, seed: int, ground_truth
             old_log.unlink()
 
     sigma = float(cfg["gnss"]["sigma_m"])
-    gnss = simulate_gnss(flight.positions, sigma, seed)
+    # A real flight's fixes are the priors; a rendered one's true positions get simulated noise.
+    gnss = flight.positions if flight.gnss_measured else simulate_gnss(flight.positions, sigma, seed)
     write_json_atomic(
         out_dir / "gnss.json",
         {
