@@ -23,6 +23,7 @@ the cloud's error that the SfM cameras cause, the rest is the dense stage's own.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 from pathlib import Path
@@ -88,9 +89,16 @@ def cover_sizes(run_dir: Path, per_point: list[int], min_new_points: int) -> dic
 
 
 def run_variant(
-    run_dir: Path, out_dir: Path, overrides: list[str], scene, eval_settings, true_poses: bool = False
+    run_dir: Path,
+    out_dir: Path,
+    overrides: list[str],
+    scene,
+    eval_settings,
+    true_poses: bool = False,
+    depth_from: Path | None = None,
 ) -> dict:
-    """Dense reconstruction of ``run_dir``'s sparse model with ``overrides``; timings and metrics."""
+    """Dense reconstruction of ``run_dir``'s sparse model with ``overrides``; timings and metrics.
+    ``depth_from``: an earlier variant's folder whose depth maps these settings share: fuse only."""
     from omegaconf import OmegaConf
 
     from evaluate.run import evaluate_reconstruction
@@ -110,9 +118,23 @@ def run_variant(
     if true_poses:
         sparse = true_pose_model(sparse, run_dir / "images", out_dir / "sparse_true_poses")
     with stage_time() as clock:
-        dense = dense_reconstruct(
-            sparse, run_dir / "images", out_dir, cfg, ground_truth=scene.ground_truth_mesh
-        )
+        if depth_from is not None:
+            from reconstruct.dense import DEPTH_SUFFIX, fuse_report
+
+            workspace = depth_from / "dense"
+            maps = sorted(
+                p.name[: -len(DEPTH_SUFFIX)] for p in (workspace / "stereo" / "depth_maps").iterdir()
+            )
+            fused = fuse_report(workspace, out_dir / "dense.ply", cfg, maps)
+            dense = {
+                "n_depth_maps": len(maps),
+                "n_dense_points": fused.n_points,
+                "dense_path": out_dir / "dense.ply",
+            }
+        else:
+            dense = dense_reconstruct(
+                sparse, run_dir / "images", out_dir, cfg, ground_truth=scene.ground_truth_mesh
+            )
     record = {
         "dense_time_s": clock.wall_s,
         "dense_cpu_s": clock.cpu_s,
@@ -128,6 +150,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("run_dir", type=Path, help="a run directory with recon/sparse and images/")
     parser.add_argument("--scene", help="its scene (conf/scene/<name>.yaml); needed by --variant")
     parser.add_argument("--variant", action="append", default=[], help="NAME=KEY=VALUE,... (repeatable)")
+    parser.add_argument(
+        "--reuse-depth",
+        action="store_true",
+        help="a variant that changes only fusion.* settings fuses an earlier variant's depth maps (marked *)",
+    )
     parser.add_argument(
         "--cover", type=int, nargs="+", metavar="K", help="only count the views the cover keeps for each K"
     )
@@ -173,13 +200,20 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(f"{args.run_dir} ({args.scene}), {os.cpu_count()} cores\n{header}", flush=True)
     rows = {}
+    depth_of: dict[str, Path] = {}  # depth settings (all but fusion) -> the variant that computed them
     for name, overrides in variants:
+        depth_key = json.dumps(sorted(o for o in overrides if not o.startswith("fusion.")))
+        reuse = depth_of.get(depth_key) if args.reuse_depth else None
         try:
-            record = run_variant(args.run_dir, args.out / name, overrides, scene, settings, args.true_poses)
+            record = run_variant(
+                args.run_dir, args.out / name, overrides, scene, settings, args.true_poses, depth_from=reuse
+            )
+            depth_of.setdefault(depth_key, args.out / name)
         except ValueError as exc:
             print(f"error: variant {name}: {exc}", file=sys.stderr)
             return 2
         rows[name] = record | {"overrides": overrides}
+        name = f"{name}*" if reuse is not None else name
         print(
             f"{name:>14} {record['dense_time_s']:>7.1f} {record['dense_cpu_s']:>7.1f} "
             f"{record['n_depth_maps']:>5d} {record['n_dense_points']:>9d} "

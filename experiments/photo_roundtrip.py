@@ -189,8 +189,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--gnss-sigma", type=float, default=0.02, help="GNSS noise per axis (m)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("overrides", nargs="*", help="uavplan overrides after --: scene=tomb planner=ours")
+    argv = list(sys.argv[1:] if argv is None else argv)
+    overrides = argv[argv.index("--") + 1 :] if "--" in argv else []
+    argv = argv[: argv.index("--")] if "--" in argv else argv
+    parser.epilog = "uavplan overrides after --: scene=tomb planner=ours"
     args = parser.parse_args(argv)
+    args.overrides = overrides
     from hydra import compose, initialize_config_dir
 
     from mission.geo import SurveyOrigin

@@ -881,7 +881,7 @@ def _fuse_in_chunks(
 
 def _fuse_rays(workspace: Path, output_ply: Path, cfg: Mapping, names: list[str]) -> int:
     """``fusion.method: rays`` (``reconstruct.fusion_rays``): points on the depth maps' rays."""
-    from reconstruct.fusion_rays import fuse_along_rays
+    from reconstruct.fusion_rays import best_supported_per_voxel, fuse_along_rays
 
     views = read_views(workspace)
     partners = select_partners(workspace, views, cfg)
@@ -891,7 +891,14 @@ def _fuse_rays(workspace: Path, output_ply: Path, cfg: Mapping, names: list[str]
         if p
     }
     cloud = fuse_along_rays(workspace, names, views, overlapping_views(workspace), baselines, cfg["fusion"])
-    log.info("fusion along rays: %d points from %d views", len(cloud["points"]), len(names))
+    n_fused = len(cloud["points"])
+    cloud = best_supported_per_voxel(cloud, float(cfg["fusion"].get("ray_voxel_m", 0.0)))
+    log.info(
+        "fusion along rays: %d points (%d before one per voxel) from %d views",
+        len(cloud["points"]),
+        n_fused,
+        len(names),
+    )
     return _write_cloud(output_ply, cloud, _support_kept(cloud, cfg))
 
 

@@ -38,6 +38,7 @@ class FusionSettings:
     support_share: float = setting(0.0, low=0, high=1)  # reconstruct.fusion_support; 0: off
     method: str = setting("colmap", choices=("colmap", "rays"))  # rays: reconstruct.fusion_rays
     ray_neighbours: int = setting(12, low=1)
+    ray_voxel_m: float = setting(0.0, low=0)
     support_radius_m: float = setting(0.03, above=0)
 
     def __post_init__(self) -> None:

@@ -161,6 +161,24 @@ def fuse_along_rays(
     return {key: np.concatenate(value) for key, value in out.items()}
 
 
+def best_supported_per_voxel(cloud: Mapping[str, np.ndarray], voxel_m: float) -> dict[str, np.ndarray]:
+    """One point per ``voxel_m`` cube: the one the most views measured (the first such); 0 keeps all.
+
+    Views that see a surface at a finer resolution than the seeding view leave pixels no seed
+    claimed; those seed near-duplicates of their own. Keeping the best-supported point of each small
+    cube keeps the cloud's density near the survey's GSD and prefers the better-measured points.
+    """
+    if voxel_m <= 0 or len(cloud["points"]) == 0:
+        return dict(cloud)
+    cells = np.floor(cloud["points"] / voxel_m).astype(np.int64)
+    order = np.lexsort((-cloud["support"], cells[:, 2], cells[:, 1], cells[:, 0]))
+    sorted_cells = cells[order]
+    first = np.ones(len(order), bool)
+    first[1:] = np.any(sorted_cells[1:] != sorted_cells[:-1], axis=1)
+    keep = np.sort(order[first])
+    return {key: value[keep] for key, value in cloud.items()}
+
+
 def back_project_pixels(view, cols: np.ndarray, rows: np.ndarray, depth: np.ndarray) -> np.ndarray:
     """World points (N, 3) of pixels (``cols``, ``rows``) at depths ``depth`` along the optical axis."""
     rays = np.stack([cols, rows, np.ones_like(cols)], -1).astype(np.float64) @ np.linalg.inv(view.K).T
