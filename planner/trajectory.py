@@ -142,17 +142,23 @@ def order_by_flight_time(viewpoints: np.ndarray, takeoff: np.ndarray, drone, fir
         return np.zeros(1, dtype=np.intp)
     cost = flight_time_costs(vps, takeoff, drone)
     if first is not None:
-        # Leaving the take-off point for any other viewpoint costs more than any whole tour.
-        others = np.ones(n + 1, bool)
-        others[[0, int(first) + 1]] = False
-        cost[0, others] += float(cost.sum()) + 1.0
-    if n == 2:
-        forward = cost[0, 1] + cost[1, 2] + cost[2, 0]
-        backward = cost[0, 2] + cost[2, 1] + cost[1, 0]
-        return np.array([0, 1] if forward <= backward else [1, 0], dtype=np.intp)
-    tour = elkai.DistanceMatrix(_int_matrix(cost)).solve_tsp(runs=int(runs))[:-1]
-    k = tour.index(0)
-    order = np.asarray(tour[k + 1 :] + tour[:k], dtype=np.intp) - 1
+        # Take-off -> ``first`` is then a fixed cost: a closed tour over the viewpoints alone, whose
+        # hop into ``first`` is the hop home from there (no penalty weights: LKH needs small ones).
+        first = int(first)
+        home = cost[1:, 0].copy()
+        cost = cost[1:, 1:].copy()
+        cost[:, first] = home
+        cost[first, first] = 0.0
+        start, offset = first, 0
+    else:
+        start, offset = 0, 1  # node 0 is the take-off point
+    if len(cost) == 2:
+        tour = [start, 1 - start]
+    else:
+        tour = elkai.DistanceMatrix(_int_matrix(cost)).solve_tsp(runs=int(runs))[:-1]
+    k = tour.index(start)
+    tour = tour[k:] + tour[:k]
+    order = np.asarray(tour[offset:], dtype=np.intp) - offset
     if sorted(order.tolist()) != list(range(n)):
         raise PlanningError("TSP solver returned an invalid tour")
     return order
