@@ -211,6 +211,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     run_dir = args.out / "run"
     origin_text = f"{origin.latitude_deg},{origin.longitude_deg},{origin.height_m}"
+    # The site: the scene's structure box, as the simulated pipeline cuts its proxy to it.
+    from scene.registry import load_scene
+
+    box = load_scene(cfg.scene, cache_dir=cfg.cache_dir).structure_bounds
+    lat, lon, _ = origin.geodetic_from_local([box.lo, box.hi])
+    roi_text = f"{min(lat)},{min(lon)},{max(lat)},{max(lon)}"
     start = time.perf_counter()
     done = subprocess.run(
         [
@@ -218,6 +224,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             "plan-photos",
             str(folder),
             f"photos.origin='{origin_text}'",
+            f"photos.roi='{roi_text}'",
             f"hydra.run.dir={run_dir}",
             *args.overrides,
         ],

@@ -118,10 +118,13 @@ def predicted_coverage(
 ) -> dict[str, float]:
     """What a plan promises before it is flown: ``observation_shares`` on the proxy, every planned
     view counted as registered. Returns ``predicted_well_observed_<class>_pct`` per surface class
-    (NaN for a class the proxy lacks), for ``plan.json`` and ``metrics.json``."""
+    (None for a class the proxy lacks: JSON has no NaN), for ``plan.json`` and ``metrics.json``."""
     shares = observation_shares(
         proxy, views, intrinsics, target_distance_m, criteria or ObservationCriteria(), settings
     )
     return {
-        f"predicted_well_observed_{r.surface}_pct": float(r.well_observed_pct) for r in shares.itertuples()
+        f"predicted_well_observed_{r.surface}_pct": None
+        if np.isnan(r.well_observed_pct)
+        else float(r.well_observed_pct)
+        for r in shares.itertuples()
     }

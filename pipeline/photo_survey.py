@@ -84,7 +84,8 @@ def plan_from_photos(cfg: DictConfig, run_dir: Path) -> dict:
     )
 
     seed = int(cfg.seed)
-    mesh, recon = build_proxy(image_dir, run_dir / "recon", cfg.reconstruct, seed)
+    roi = site_box(str(cfg.photos.roi), origin) if cfg.photos.get("roi") else None
+    mesh, recon = build_proxy(image_dir, run_dir / "recon", cfg.reconstruct, seed, roi=roi)
     mesh.export(run_dir / PROXY_FILE)
     proxy = load_proxy(run_dir)
     plan, plan_record = plan_stage(
@@ -146,6 +147,26 @@ def plan_from_photos(cfg: DictConfig, run_dir: Path) -> dict:
         run_dir / "missions",
     )
     return result
+
+
+def site_box(text: str, origin):
+    """The local box (``scene.base.Box``, metres; all heights) of a ``SOUTH,WEST,NORTH,EAST`` site."""
+    from pipeline.photos import PhotoError
+    from scene.base import Box
+
+    try:
+        south, west, north, east = (float(v) for v in text.split(","))
+    except ValueError as exc:
+        raise PhotoError(f"photos.roi={text!r}: expected SOUTH,WEST,NORTH,EAST in degrees") from exc
+    if not (-90 <= south < north <= 90 and -180 <= west < east <= 180):
+        raise PhotoError(
+            f"photos.roi={text!r}: need -90 <= south < north <= 90 and -180 <= west < east <= 180"
+        )
+    corners = origin.local_from_geodetic(
+        [south, south, north, north], [west, east, west, east], [origin.height_m] * 4
+    )
+    lo, hi = corners.min(axis=0), corners.max(axis=0)
+    return Box((float(lo[0]), float(lo[1]), -1e4), (float(hi[0]), float(hi[1]), 1e4))
 
 
 def _registered_names(sparse_dir: Path) -> set[str]:
