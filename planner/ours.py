@@ -406,6 +406,7 @@ def plan_with(
     # ------------------------------------------------------------------ the crew's budget
     cap = settings.budget.max_images
     k_fill = det_params.k_count
+    n_paper = len(viewpoints)  # the paper's plan, before a fill
     while cap is not None and len(viewpoints) < cap and k_fill < det_params.k_count + MAX_FILL_VIEWS:
         # A budget above what the objective asks for: one more detail view per sampled point.
         k_fill += 1
@@ -437,7 +438,12 @@ def plan_with(
         kept, budget = fit_budget(
             final_state, vps, kinds, settings.budget, settings.drone, takeoff, int(cfg["tsp_runs"])
         )
-        budget |= {"unconstrained_viewpoints": vps.tolist(), "time_s": time.perf_counter() - t0}
+        # "unconstrained": what the objective asked for (after a fill: the filled plan, before the prune).
+        budget |= {
+            "paper_plan_images": n_paper,
+            "unconstrained_viewpoints": vps.tolist(),
+            "time_s": time.perf_counter() - t0,
+        }
         vps, kinds = vps[kept], [k for k, keep in zip(kinds, kept, strict=True) if keep]
 
     # ------------------------------------------------------------------ final score and order
