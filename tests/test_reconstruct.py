@@ -609,6 +609,33 @@ def test_a_fused_point_belongs_to_the_chunk_owning_most_of_its_views(tmp_path):
         read_visibility(path)
 
 
+def test_an_auto_fusion_budget_chunks_to_the_memory_free(box_reconstruction, tmp_path, monkeypatch):
+    """``max_memory_gb: auto`` is half the memory free: with 33 views' worth free, 16 a chunk."""
+    import psutil
+
+    from reconstruct.dense import fuse_report
+
+    out_dir, _ = box_reconstruction
+    workspace = out_dir / "dense"
+    names = sorted(p.name for p in (workspace / "images").iterdir())
+    view_bytes = 20 * 320 * 240
+    free = type("Free", (), {"available": 33.5 * view_bytes})()
+    monkeypatch.setattr(psutil, "virtual_memory", lambda: free)
+    cfg = reconstruct_cfg(**{"dense.fusion.check_num_images": 6}).dense
+    assert fusion_chunk_size(workspace, names, fusion_budget_gb("auto")) == 16
+    report = fuse_report(workspace, tmp_path / "auto.ply", cfg, names, deterministic=True)
+    assert report.n_chunks >= 3 and report.max_memory_gb == pytest.approx(0.5 * 33.5 * view_bytes / 1e9)
+    single = fuse(
+        workspace,
+        tmp_path / "one.ply",
+        reconstruct_cfg(**{"dense.fusion.check_num_images": 6, "dense.fusion.max_memory_gb": None}).dense,
+        names,
+        deterministic=True,
+    )
+    # The chunked cloud covers the one-pass cloud: as many points within half, at most half again.
+    assert single <= report.n_points < 1.5 * single
+
+
 def test_fusion_in_chunks_covers_the_single_pass_cloud(box_reconstruction, tmp_path):
     """The 33 box views, fusion walking to 6 neighbours of each, fused in chunks of at most 16 views:
     the surfaces of one pass, as close to the truth, a few of them twice (chunk boundaries)."""
