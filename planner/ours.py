@@ -309,20 +309,26 @@ def plan_with(
     kinds: list[str] = []
     excluded = np.zeros(n_points, bool)
     add = cfg["addition"]
-    for r in range(int(cfg["detail_rounds"])):
-        stats = _add_viewpoints(
+
+    def add_detail(k_count: int, excluded_points: np.ndarray, repair_groups: int, desc: str) -> dict:
+        return _add_viewpoints(
             state,
             viewpoints,
             kinds,
             "detail",
             det_model,
             lambda i: detail_group(i, det_model, limits, det_settings),
-            det_params.k_count,
-            excluded,
+            k_count,
+            excluded_points,
             float(add["repair_threshold"]),
-            int(add["repair_max_groups"]),
+            repair_groups,
             True,
-            f"detail round {r + 1}",
+            desc,
+        )
+
+    for r in range(int(cfg["detail_rounds"])):
+        stats = add_detail(
+            det_params.k_count, excluded, int(add["repair_max_groups"]), f"detail round {r + 1}"
         )
         if time_term is not None and time_term.reference_s is None and viewpoints:
             time_term = time_term.referenced(np.asarray(viewpoints))
@@ -410,20 +416,7 @@ def plan_with(
     while cap is not None and len(viewpoints) < cap and k_fill < det_params.k_count + MAX_FILL_VIEWS:
         # A budget above what the objective asks for: one more detail view per sampled point.
         k_fill += 1
-        stats = _add_viewpoints(
-            state,
-            viewpoints,
-            kinds,
-            "detail",
-            det_model,
-            lambda i: detail_group(i, det_model, limits, det_settings),
-            k_fill,
-            np.zeros(n_points, bool),
-            float(add["repair_threshold"]),
-            0,
-            True,
-            f"budget fill (k {k_fill})",
-        )
+        stats = add_detail(k_fill, np.zeros(n_points, bool), 0, f"budget fill (k {k_fill})")
         rec.record("budget_fill", k_fill, state, kinds, **stats)
         if not stats["added"]:
             break

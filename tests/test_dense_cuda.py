@@ -25,6 +25,7 @@ from reconstruct.dense import (  # noqa: E402
     read_views,
 )
 from scene.camera import Intrinsics, cam_from_world  # noqa: E402
+from tests.workspaces import shared_point_model  # noqa: E402
 
 needs_cuda = pytest.mark.skipif(not pycolmap.has_cuda, reason="pycolmap has no CUDA (pycolmap-cuda12)")
 
@@ -64,13 +65,11 @@ def build_plane_workspace(root: Path, intr: Intrinsics) -> tuple[Path, dict[str,
     """A COLMAP dense workspace of a 3x3 nadir grid over a textured plane; exact depths by name."""
     texture = noise_texture(1024, seed=5)
     half = texture.shape[0] * TEXEL_M / 2
-    rec = pycolmap.Reconstruction()
-    rec.add_camera_with_trivial_rig(intr.to_colmap())
     (root / "images").mkdir(parents=True)
     grid = np.stack(np.meshgrid(np.linspace(-2.0, 2.0, 9), np.linspace(-1.5, 1.5, 7)), -1).reshape(-1, 2)
     sparse = np.column_stack([grid, np.full(len(grid), PLANE_Z)])
     positions = [(x, y) for x in (-1.5, 0.0, 1.5) for y in (-1.0, 0.0, 1.0)]
-    truth = {}
+    truth, poses = {}, []
     for i, (x, y) in enumerate(positions):
         name = f"{i:06d}.png"
         rotation, translation = cam_from_world(np.array([x, y, HEIGHT, 90.0, -90.0]))
@@ -79,17 +78,8 @@ def build_plane_workspace(root: Path, intr: Intrinsics) -> tuple[Path, dict[str,
         image = cv2.remap(texture, texel[..., 0], texel[..., 1], cv2.INTER_LINEAR)
         cv2.imwrite(str(root / "images" / name), np.round(255 * image).astype(np.uint8))
         truth[name] = depth
-        cam = sparse @ rotation.T + translation
-        keypoints = cam[:, :2] / cam[:, 2:] * intr.focal_px + [intr.cx, intr.cy]
-        image_obj = pycolmap.Image(name=name, keypoints=keypoints, camera_id=1, image_id=i + 1)
-        rec.add_image_with_trivial_frame(
-            image_obj, pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), translation)
-        )
-    for k, xyz in enumerate(sparse):
-        track = pycolmap.Track()
-        for i in range(len(positions)):
-            track.add_element(i + 1, k)
-        rec.add_point3D(xyz, track)
+        poses.append((rotation, translation))
+    rec = shared_point_model(list(truth), [r for r, _ in poses], [t for _, t in poses], sparse, intr)
     (root / "sparse").mkdir()
     rec.write(root / "sparse")
     (root / "stereo").mkdir()

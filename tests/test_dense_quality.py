@@ -9,7 +9,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import pycolmap
 import pytest
 import trimesh
 
@@ -20,6 +19,7 @@ from reconstruct.oracle import oracle_view, stereo_depth_sigma
 from scene.camera import Intrinsics, cam_from_world, look_at
 from scene.enclosure import raycasting_scene
 from tests.test_reconstruct import box_world_mesh, reconstruct_cfg
+from tests.workspaces import shared_point_model
 
 INTR = Intrinsics(320, 240, 60.0)
 
@@ -35,22 +35,29 @@ def opencv_view(name: str, viewpoint) -> View:
 # ----------------------------------------------------------------------------- the oracle
 
 
-def test_the_oracle_depth_of_a_plane_is_the_analytic_depth():
-    """A 40 x 40 m ground plane z = 0 seen from 20 m at a 45 deg pitch: depth z(v) along the axis."""
-    plane = trimesh.Trimesh(
-        [[-200, -200, 0], [200, -200, 0], [200, 200, 0], [-200, 200, 0]], [[0, 1, 2], [0, 2, 3]]
-    )
-    view = opencv_view("a", [0.0, 0.0, 20.0, 90.0, -45.0])
-    depth, normals = oracle_view(
-        raycasting_scene(plane),
+GROUND = trimesh.Trimesh(
+    [[-200, -200, 0], [200, -200, 0], [200, 200, 0], [-200, 200, 0]], [[0, 1, 2], [0, 2, 3]]
+)
+
+
+def oracle_of_ground(view: View, baseline_m: float, sigma_px: float, seed: int = 0):
+    """The oracle's depth and normals of the ground plane z = 0 seen by ``view``."""
+    return oracle_view(
+        raycasting_scene(GROUND),
         view.center,
         view.K,
         view.rotation,
         (view.width, view.height),
-        1.0,
-        0.0,
-        np.random.default_rng(0),
+        baseline_m,
+        sigma_px,
+        np.random.default_rng(seed),
     )
+
+
+def test_the_oracle_depth_of_a_plane_is_the_analytic_depth():
+    """The ground plane z = 0 seen from 20 m at a 45 deg pitch: depth z(v) along the axis."""
+    view = opencv_view("a", [0.0, 0.0, 20.0, 90.0, -45.0])
+    depth, normals = oracle_of_ground(view, 1.0, 0.0)
     u, v = np.meshgrid(np.arange(view.width, dtype=float), np.arange(view.height, dtype=float))
     rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(view.K).T @ view.rotation
     truth = -view.center[2] / rays[..., 2]  # rays have unit camera depth: t is the depth
@@ -65,25 +72,13 @@ def test_the_oracle_depth_of_a_plane_is_the_analytic_depth():
 
 def test_the_oracle_noise_is_the_stereo_model_sigma():
     """Nadir over a plane 20 m below, baseline 2 m, 0.5 px: sigma_z = 20^2 / (277.13 x 2) x 0.5 m."""
-    plane = trimesh.Trimesh(
-        [[-200, -200, 0], [200, -200, 0], [200, 200, 0], [-200, 200, 0]], [[0, 1, 2], [0, 2, 3]]
-    )
     view = opencv_view("a", [0.0, 0.0, 20.0, 90.0, -90.0])
     f = 0.5 * 320 / math.tan(math.radians(30.0))
     assert f == pytest.approx(277.128, abs=1e-3)
     hand = 20.0**2 / (f * 2.0) * 0.5
     assert hand == pytest.approx(0.36084, abs=1e-5)
     assert stereo_depth_sigma(20.0, f, 2.0, 0.5) == pytest.approx(hand)
-    depth, _ = oracle_view(
-        raycasting_scene(plane),
-        view.center,
-        view.K,
-        view.rotation,
-        (view.width, view.height),
-        2.0,
-        0.5,
-        np.random.default_rng(1),
-    )
+    depth, _ = oracle_of_ground(view, 2.0, 0.5, seed=1)
     residual = depth - 20.0  # a nadir view of a level plane: every pixel's depth is the height
     assert np.std(residual) == pytest.approx(hand, rel=0.01)
     assert abs(np.mean(residual)) < 0.01
@@ -133,22 +128,11 @@ def fused_error_p90(tmp_path: Path, n_views: int, edge_margin: int, method: str)
     shutil.rmtree(workspace, ignore_errors=True)
     (workspace / "images").mkdir(parents=True)
     views = box_flight(n_views)
-    rec = pycolmap.Reconstruction()
-    rec.add_camera_with_trivial_rig(INTR.to_colmap())
     points = trimesh.sample.sample_surface(mesh, 3000, seed=1)[0]
     points = points[(np.abs(points[:, 0]) < 6) & (np.abs(points[:, 1]) < 6)]
-    for i, view in enumerate(views):
-        cam = points @ view.rotation.T + view.translation
-        keypoints = cam[:, :2] / cam[:, 2:] * INTR.focal_px + [INTR.cx, INTR.cy]
-        image = pycolmap.Image(name=view.name, keypoints=keypoints, camera_id=1, image_id=i + 1)
-        rec.add_image_with_trivial_frame(
-            image, pycolmap.Rigid3d(pycolmap.Rotation3d(view.rotation), view.translation)
-        )
-    for k, xyz in enumerate(points):
-        track = pycolmap.Track()
-        for i in range(len(views)):
-            track.add_element(i + 1, k)
-        rec.add_point3D(xyz, track)
+    rec = shared_point_model(
+        [v.name for v in views], [v.rotation for v in views], [v.translation for v in views], points, INTR
+    )
     (workspace / "sparse").mkdir()
     rec.write(workspace / "sparse")
     scene = raycasting_scene(mesh)
@@ -199,17 +183,8 @@ def test_edge_pixels_lie_within_the_margin_of_a_depth_jump():
 
 
 def test_geometric_support_counts_the_views_that_measured_the_point():
-    plane = trimesh.Trimesh(
-        [[-200, -200, 0], [200, -200, 0], [200, 200, 0], [-200, 200, 0]], [[0, 1, 2], [0, 2, 3]]
-    )
-    scene = raycasting_scene(plane)
     views = [opencv_view(str(i), [x, 0.0, 20.0, 90.0, -90.0]) for i, x in enumerate((0.0, 2.0, 4.0))]
-    maps = [
-        oracle_view(
-            scene, v.center, v.K, v.rotation, (v.width, v.height), 1.0, 0.0, np.random.default_rng(0)
-        )[0]
-        for v in views
-    ]
+    maps = [oracle_of_ground(v, 1.0, 0.0)[0] for v in views]
     wrong = maps[2] * 1.05  # the third view measured 5 % too far everywhere
     support = geometric_support(views[0], maps[0], [(views[1], maps[1]), (views[2], wrong)], 0.01)
     seen_by_1 = np.isfinite(maps[0])

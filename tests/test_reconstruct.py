@@ -47,6 +47,7 @@ from reconstruct.sfm_settings import COLMAP_LOCAL_BA
 from reconstruct.timing import stage_time
 from scene.base import Box, MeshPart, Scene
 from scene.camera import Intrinsics, cam_from_world, look_at
+from tests.workspaces import shared_point_model
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "conf" / "reconstruct" / "default.yaml"
@@ -345,25 +346,18 @@ def test_fusion_of_plane_depth_maps_lies_on_the_plane(tmp_path):
     positions = [(x, y) for x in (-1.5, 0.0, 1.5) for y in (-1.0, 0.0, 1.0)]
     views = plane_views(intr, positions, height=10.0)
     workspace = tmp_path / "ws"
-    rec = pycolmap.Reconstruction()
-    rec.add_camera_with_trivial_rig(intr.to_colmap())
     texture = noise_texture(256, seed=1)
     (workspace / "images").mkdir(parents=True)
     # Sparse points on the plane seen by every view: fusion picks overlapping views by shared points.
     grid = np.stack(np.meshgrid(np.linspace(-1.0, 1.0, 5), np.linspace(-1.0, 1.0, 5)), -1).reshape(-1, 2)
     sparse_points = np.column_stack([grid, np.full(len(grid), plane_z)])
-    for i, view in enumerate(views):
-        cam = sparse_points @ view.rotation.T + view.translation
-        keypoints = cam[:, :2] / cam[:, 2:] * intr.focal_px + [intr.cx, intr.cy]
-        image = pycolmap.Image(name=view.name, keypoints=keypoints, camera_id=1, image_id=i + 1)
-        rec.add_image_with_trivial_frame(
-            image, pycolmap.Rigid3d(pycolmap.Rotation3d(view.rotation), view.translation)
-        )
-    for k, xyz in enumerate(sparse_points):
-        track = pycolmap.Track()
-        for i in range(len(views)):
-            track.add_element(i + 1, k)
-        rec.add_point3D(xyz, track)
+    rec = shared_point_model(
+        [v.name for v in views],
+        [v.rotation for v in views],
+        [v.translation for v in views],
+        sparse_points,
+        intr,
+    )
     for view in views:
         gray = raycast_box_world([], texture, 0.02, view.rotation, view.translation, intr)
         cv2.imwrite(str(workspace / "images" / view.name), gray)
