@@ -36,7 +36,7 @@ setup_pycolmap() {
 for step in ${*:-dense test}; do
   case $step in
     dense)
-      setup_pycolmap && tar -xf .dense_cuda/workspace.tar -C /tmp/ws || exit 1
+      setup_pycolmap && tar -xf .dense_cuda/workspace.tar* -C /tmp/ws || exit 1
       python3 -m benchmarks.dense_cuda dense /tmp/ws --backend cuda --out "$OUT" 2>&1 |
         tee "$OUT/dense.log" | grep -v '^[IW]2' ;;
     test)

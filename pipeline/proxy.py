@@ -69,8 +69,10 @@ class ProxyInputs:
 
 
 def exploration_cache_key(scene: Scene, inputs: ProxyInputs) -> str:
-    """Content key of the exploratory flight + proxy: the scene's content and the stage's settings."""
-    from reconstruct.pipeline import proxy_settings
+    """Content key of the exploratory flight + proxy: the scene's content and the stage's settings
+    (the ``reconstruct`` settings as the exploratory flight runs them: ``proxy.dense`` in effect, so
+    a change to the scored flights' dense settings leaves proxies valid)."""
+    from reconstruct.pipeline import proxy_flight_config, proxy_settings
 
     return cache_key(
         scene.fingerprint,
@@ -78,7 +80,7 @@ def exploration_cache_key(scene: Scene, inputs: ProxyInputs) -> str:
         plain(inputs.camera),
         plain(inputs.exploration),
         plain(inputs.render),
-        proxy_settings(inputs.reconstruct),
+        proxy_settings(proxy_flight_config(inputs.reconstruct)),
         int(inputs.seed),
     )
 

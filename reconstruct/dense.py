@@ -932,12 +932,13 @@ def _write_cloud(path: Path, cloud: Mapping, keep: np.ndarray | None) -> int:
 
 def _support_filtered(output_ply: Path, cfg: Mapping, n_points: int) -> int:
     """Apply the support filter to a one-pass fusion's PLY (and its ``.vis``) in place."""
+    if float(cfg["fusion"].get("support_share", 0.0)) <= 0 or n_points <= 0:
+        return n_points
+    # Imported here: the CUDA back-end's machine needs only numpy, OpenCV and pycolmap.
     import open3d as o3d
 
     from reconstruct.fusion_chunks import read_visibility
 
-    if float(cfg["fusion"].get("support_share", 0.0)) <= 0 or n_points <= 0:
-        return n_points
     counts, _ = read_visibility(Path(str(output_ply) + ".vis"))
     cloud = o3d.io.read_point_cloud(str(output_ply))
     arrays = {

@@ -74,6 +74,9 @@ COLMAP_VALUED_MAPPING_KEYS = {
 FUSION_BUDGET_KEY = "max_memory_gb"
 # dense: depth maps for a cover of the views only; at null (every view) it leaves the keys alone.
 REFERENCE_VIEWS_KEYS = ("reference_views_per_point", "reference_min_new_points")
+# dense.fusion: the ray fusion's settings (with its method) and the support filter's.
+RAY_FUSION_KEYS = ("method", "ray_neighbours", "ray_voxel_m")
+SUPPORT_FILTER_KEYS = ("support_share", "support_radius_m")
 
 
 def _in_effect(section: str, value, fusion_bytes: float = 0.0):
@@ -84,6 +87,12 @@ def _in_effect(section: str, value, fusion_bytes: float = 0.0):
         budget = fusion_budget_gb(value["fusion"].get(FUSION_BUDGET_KEY))
         binds = budget is not None and fusion_bytes > budget * 1e9
         fusion = {k: v for k, v in value["fusion"].items() if k != FUSION_BUDGET_KEY or binds}
+        # Fusion settings added after records: at COLMAP's fusion and no support filter, they fuse
+        # as before they existed.
+        if fusion.get("method", "colmap") == "colmap":
+            fusion = {k: v for k, v in fusion.items() if k not in RAY_FUSION_KEYS}
+        if not fusion.get("support_share"):
+            fusion = {k: v for k, v in fusion.items() if k not in SUPPORT_FILTER_KEYS}
         if value.get(REFERENCE_VIEWS_KEYS[0]) is None:  # added after records: off, every view as before
             value = {k: v for k, v in value.items() if k not in REFERENCE_VIEWS_KEYS}
         if value.get("backend") != "oracle":  # the oracle's noise moves no other back-end's cloud
@@ -439,18 +448,27 @@ def proxy_bounds(sparse_dir: Path, margin_m: float) -> Box:
 
 
 def proxy_flight_config(cfg: Mapping) -> dict:
-    """The ``reconstruct`` config for the exploratory flight: ``proxy.dense`` overrides ``dense``.
+    """The ``reconstruct`` config for the exploratory flight: ``proxy.dense`` overrides ``dense``
+    (nested sections key by key: ``proxy.dense.fusion.method`` leaves the other fusion settings).
 
     The proxy is meshed from a cloud voxelised at ``proxy.voxel_size_m``, so its depth maps need not
     be computed at the scored flights' resolution (``proxy.dense.max_image_size``).
     """
     flight_cfg = plain(cfg)
     overrides = flight_cfg["proxy"].get("dense") or {}
-    unknown = sorted(set(overrides) - set(flight_cfg["dense"]))
-    if unknown:
-        raise ValueError(f"reconstruct.proxy.dense: unknown dense settings {unknown}")
-    flight_cfg["dense"] = {**flight_cfg["dense"], **overrides}
+    flight_cfg["dense"] = _overridden(flight_cfg["dense"], overrides, "reconstruct.proxy.dense")
     return flight_cfg
+
+
+def _overridden(base: Mapping, overrides: Mapping, where: str) -> dict:
+    unknown = sorted(set(overrides) - set(base))
+    if unknown:
+        raise ValueError(f"{where}: unknown dense settings {unknown}")
+    out = dict(base)
+    for key, value in overrides.items():
+        nested = isinstance(value, Mapping) and isinstance(base[key], Mapping)
+        out[key] = _overridden(base[key], value, f"{where}.{key}") if nested else value
+    return out
 
 
 def _roi_key(roi: Box | None, pcfg: Mapping) -> list | None:

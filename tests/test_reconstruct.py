@@ -834,6 +834,39 @@ def test_reconstruct_flight_reuses_unchanged_outputs(box_flight, box_reconstruct
     assert flight_content_key(box_flight, flight, reconstruct_cfg(), 0) != keys[5]
 
 
+def test_dense_settings_added_after_the_records_leave_legacy_keys_alone(box_flight):
+    # A config from before the depth filters and the ray fusion existed, and one that sets them
+    # to their legacy values, key the same flight alike; each one switched on makes a new key.
+    flight = read_flight(box_flight)
+    legacy = {
+        "dense.edge_margin_px": 0,
+        "dense.geometric_consistency.min_views": 0,
+        "dense.fusion.method": "colmap",
+        "dense.fusion.support_share": 0.0,
+    }
+    explicit = reconstruct_cfg(**legacy)
+    before = reconstruct_cfg(**legacy)
+    for key in ("edge_margin_px", "geometric_consistency"):
+        before.dense.pop(key)
+    for key in ("method", "ray_neighbours", "ray_voxel_m", "support_share", "support_radius_m"):
+        before.dense.fusion.pop(key)
+    key = flight_content_key(box_flight, flight, before, 0)
+    assert flight_content_key(box_flight, flight, explicit, 0) == key
+    rays_only = reconstruct_cfg(**{**legacy, "dense.fusion.ray_neighbours": 3})  # unread by COLMAP's fusion
+    assert flight_content_key(box_flight, flight, rays_only, 0) == key
+    switched = {
+        "dense.edge_margin_px": 3,
+        "dense.geometric_consistency.min_views": 2,
+        "dense.fusion.method": "rays",
+        "dense.fusion.support_share": 0.3,
+    }
+    keys = {
+        flight_content_key(box_flight, flight, reconstruct_cfg(**{**legacy, key: value}), 0)
+        for key, value in switched.items()
+    }
+    assert len(keys) == 4 and flight_content_key(box_flight, flight, before, 0) not in keys
+
+
 def test_a_run_killed_after_sfm_resumes_from_its_sparse_model(box_flight, box_reconstruction, tmp_path):
     out_dir, record = box_reconstruction
     killed = tmp_path / "recon"
@@ -918,6 +951,12 @@ def test_proxy_dense_settings_override_only_the_exploratory_flight():
     assert cfg.dense.max_image_size == 1024  # the scored flights' settings are untouched
     with pytest.raises(ValueError, match="unknown dense settings"):
         proxy_flight_config(reconstruct_cfg(**{"proxy.dense": {"max_image_sise": 640}}))
+    # A nested section is overridden key by key: the other fusion settings stay the scored flights'.
+    cfg = reconstruct_cfg(**{"proxy.dense": {"fusion": {"method": "colmap"}}, "dense.fusion.method": "rays"})
+    fusion = proxy_flight_config(cfg)["dense"]["fusion"]
+    assert fusion == {**OmegaConf.to_container(cfg.dense.fusion), "method": "colmap"}
+    with pytest.raises(ValueError, match=r"proxy\.dense\.fusion: unknown dense settings \['methd'\]"):
+        proxy_flight_config(reconstruct_cfg(**{"proxy.dense": {"fusion": {"methd": "colmap"}}}))
 
 
 def _flight_of_images(image_dir: Path, images, intr: Intrinsics) -> Path:
