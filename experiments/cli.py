@@ -21,6 +21,7 @@ COMMANDS = {
     "ours-plus-front": "experiments.ours_plus_front",
     "viewer": "experiments.viewer",
     "photo-roundtrip": "experiments.photo_roundtrip",
+    "oracle-gap": "experiments.oracle_gap",
 }
 
 

@@ -38,6 +38,7 @@ from experiments.runs import (  # noqa: E402
     load_runs,
     method_name,
     method_sort_key,
+    out_is_a_file,
     read_run_config,
     read_run_viewpoints,
     run_scene_mesh,
@@ -636,8 +637,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--dpi", type=int, default=200)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-    if args.out.exists() and not args.out.is_dir():
-        print(f"error: --out {args.out} exists and is not a directory", file=sys.stderr)
+    if out_is_a_file(args.out):
         return 2
     try:
         written = make_figures(

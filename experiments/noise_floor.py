@@ -36,6 +36,7 @@ from experiments.runs import (
     find_run_dirs,
     method_name,
     method_sort_key,
+    out_is_a_file,
     read_metrics,
     scene_name,
     scene_sort_key,
@@ -247,8 +248,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("overrides", nargs="*", help="run.py overrides after --: scene=tomb planner=ours")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-    if args.out.exists() and not args.out.is_dir():
-        print(f"error: --out {args.out} exists and is not a directory", file=sys.stderr)
+    if out_is_a_file(args.out):
         return 2
     run_path = args.summarise
     if run_path is None:

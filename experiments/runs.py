@@ -11,6 +11,7 @@ import json
 import logging
 import math
 import os
+import sys
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -414,3 +415,11 @@ def tool_parser(prog: str, doc: str, out_help: str | None = None) -> argparse.Ar
         )
         parser.add_argument("--out", type=Path, required=True, help=out_help)
     return parser
+
+
+def out_is_a_file(out: Path) -> bool:
+    """True (and the error printed) when a tool's ``--out`` names something that is not a directory."""
+    if out.exists() and not out.is_dir():
+        print(f"error: --out {out} exists and is not a directory", file=sys.stderr)
+        return True
+    return False

@@ -33,6 +33,7 @@ from experiments.runs import (
     RunDirectoryError,
     load_runs,
     method_sort_key,
+    out_is_a_file,
     runs_frame,
     scene_name,
     scene_sort_key,
@@ -641,8 +642,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-    if args.out.exists() and not args.out.is_dir():
-        print(f"error: --out {args.out} exists and is not a directory", file=sys.stderr)
+    if out_is_a_file(args.out):
         return 2
     try:
         floor = read_floor(args.noise_floor) if args.noise_floor is not None else None
