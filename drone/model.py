@@ -33,7 +33,6 @@ class DroneError(ValueError):
     """A drone setting out of range, or a plan the drone cannot fly (one line naming it)."""
 
 
-
 @dataclass(frozen=True)
 class DroneSettings:
     """What the drone can fly and how fast; see ``conf/drone/default.yaml`` for each value's choice.
@@ -90,9 +89,7 @@ class DroneSettings:
         if self.min_height_m >= self.ceiling_m:
             raise DroneError(f"drone.min_height_m ({self.min_height_m}) must be below ceiling_m")
         if int(self.max_waypoints_per_file) < 1:
-            raise DroneError(
-                f"drone.max_waypoints_per_file must be >= 1, got {self.max_waypoints_per_file}"
-            )
+            raise DroneError(f"drone.max_waypoints_per_file must be >= 1, got {self.max_waypoints_per_file}")
         if self.qgc_gimbal_command not in ("gimbal_manager", "mount_control"):
             raise DroneError(
                 "drone.qgc_gimbal_command must be gimbal_manager or mount_control, "
