@@ -119,7 +119,8 @@ def run_variant(
         sparse = true_pose_model(sparse, run_dir / "images", out_dir / "sparse_true_poses")
     with stage_time() as clock:
         if depth_from is not None:
-            from reconstruct.dense import DEPTH_SUFFIX, fuse_report
+            from reconstruct.dense import fuse_report
+            from reconstruct.workspace import DEPTH_SUFFIX
 
             workspace = depth_from / "dense"
             maps = sorted(

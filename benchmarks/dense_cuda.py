@@ -71,7 +71,7 @@ def build_workspace(sparse: Path, images: Path, out: Path, num_images: int, seed
     import cv2
     import pycolmap
 
-    from reconstruct.dense import prepare_workspace
+    from reconstruct.workspace import prepare_workspace
 
     rec = pycolmap.Reconstruction(sparse)
     ids = sorted(rec.reg_image_ids(), key=lambda i: rec.image(i).name)

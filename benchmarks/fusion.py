@@ -25,7 +25,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     from omegaconf import OmegaConf
 
-    from reconstruct.dense import DEPTH_SUFFIX, _fuse_atomic
+    from reconstruct.dense import _fuse_atomic
+    from reconstruct.workspace import DEPTH_SUFFIX
 
     maps = args.workspace / "stereo" / "depth_maps"
     names = sorted(p.name[: -len(DEPTH_SUFFIX)] for p in maps.glob(f"*{DEPTH_SUFFIX}"))

@@ -36,15 +36,8 @@ import trimesh
 
 from experiments.observations import GT_REGION_FILE, SPARSE_DIR
 from experiments.runs import RunDirectoryError, read_run_config, tool_parser
-from reconstruct.dense import (
-    View,
-    consistent_depth,
-    pair_depth,
-    prepare_workspace,
-    read_views,
-    select_partners,
-    sparse_points_by_image,
-)
+from reconstruct.dense import consistent_depth, pair_depth
+from reconstruct.workspace import View, prepare_workspace, read_views, select_partners, sparse_points_by_image
 from scene.enclosure import raycasting_scene
 from scene.io import write_text_atomic
 

@@ -88,7 +88,7 @@ class PhotoViews:
     @classmethod
     def from_reconstruction(cls, recon_dir: Path, image_dir: Path) -> PhotoViews:
         """The registered views of ``recon_dir/sparse`` (COLMAP, world frame) and their images."""
-        from reconstruct.dense import read_views
+        from reconstruct.workspace import read_views
 
         views = sorted(read_views(Path(recon_dir)).values(), key=lambda v: v.name)
         if not views:

@@ -34,6 +34,16 @@ from tqdm import tqdm
 
 from reconstruct.dense_settings import BACKENDS, DenseSettings
 from reconstruct.depth_filter import edge_pixels, geometric_support
+from reconstruct.workspace import (
+    DEPTH_SUFFIX,
+    View,
+    overlapping_views,
+    prepare_workspace,
+    read_views,
+    select_partners,
+    sparse_points_by_image,
+    write_maps,
+)
 from scene.io import write_atomic, write_text_atomic
 
 if TYPE_CHECKING:
@@ -41,32 +51,10 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-DEPTH_SUFFIX = ".geometric.bin"
 # A rectified view larger than this many times the source image comes from a near-degenerate pair.
 _MAX_RECTIFIED_AREA_RATIO = 4.0
 # A normal window whose depths spread more than this (relative) straddles an occlusion edge.
 _MAX_WINDOW_DEPTH_JUMP = 0.05
-
-
-@dataclass(frozen=True)
-class View:
-    """One undistorted workspace image: OpenCV intrinsics, cam_from_world, centre (metres)."""
-
-    name: str
-    K: np.ndarray
-    rotation: np.ndarray
-    translation: np.ndarray
-    width: int
-    height: int
-
-    @property
-    def center(self) -> np.ndarray:
-        return -self.rotation.T @ self.translation
-
-    @property
-    def forward(self) -> np.ndarray:
-        """Optical axis (3,) in the world frame."""
-        return self.rotation[2]
 
 
 @dataclass(frozen=True)
@@ -103,160 +91,6 @@ def select_backend(requested: str) -> str:
             "reconstruct.dense.backend=cuda but this pycolmap has no CUDA (install pycolmap-cuda12)"
         )
     return requested
-
-
-def prepare_workspace(sparse_dir: Path, image_dir: Path, workspace: Path, cfg: Mapping) -> Path:
-    """Undistort the images of the sparse model into a fresh COLMAP dense workspace; return it.
-
-    Images are rescaled so their longest side is at most ``dense.max_image_size`` pixels. A model
-    whose cameras are all PINHOLE and no larger than that needs neither: its images are linked
-    into the workspace as they are (COLMAP's undistorter would decode and re-encode every one).
-    """
-    workspace = Path(workspace)
-    shutil.rmtree(workspace, ignore_errors=True)
-    workspace.parent.mkdir(parents=True, exist_ok=True)
-    max_size = int(cfg["max_image_size"])
-    rec = pycolmap.Reconstruction(sparse_dir)
-    if all(
-        cam.model == pycolmap.CameraModelId.PINHOLE and max(cam.width, cam.height) <= max_size
-        for cam in rec.cameras.values()
-    ):
-        _link_workspace(rec, Path(image_dir), workspace)
-        return workspace
-    options = pycolmap.UndistortCameraOptions()
-    options.max_image_size = max_size
-    pycolmap.undistort_images(
-        workspace, sparse_dir, image_dir, output_type="COLMAP", undistort_options=options
-    )
-    _match_cameras_to_images(workspace)
-    return workspace
-
-
-def _link_workspace(rec: pycolmap.Reconstruction, image_dir: Path, workspace: Path) -> None:
-    """The workspace ``undistort_images`` would write for an undistorted model at full size: images
-    hard-linked (copied across file systems), the model, and ``stereo/patch-match.cfg`` with
-    COLMAP's automatic choice of 20 source images per view."""
-    (workspace / "images").mkdir(parents=True)
-    names = sorted(rec.image(i).name for i in rec.reg_image_ids())
-    for name in names:
-        source, target = image_dir / name, workspace / "images" / name
-        target.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            os.link(source, target)
-        except OSError:
-            shutil.copyfile(source, target)
-    (workspace / "sparse").mkdir()
-    rec.write(workspace / "sparse")
-    stereo = workspace / "stereo"
-    for folder in ("depth_maps", "normal_maps", "consistency_graphs"):
-        (stereo / folder).mkdir(parents=True)
-    write_text_atomic(stereo / "patch-match.cfg", "".join(f"{n}\n__auto__, 20\n" for n in names))
-
-
-def _match_cameras_to_images(workspace: Path) -> None:
-    """Rescale the workspace's cameras to the size of their undistorted images.
-
-    COLMAP 3.13 / pycolmap 4.0.4's undistorter downsizes every image to ``max_image_size`` but
-    leaves cameras that need no undistortion (PINHOLE, like the simulated survey camera) at their
-    old size in ``sparse/``: depth maps computed from that model would be scaled wrongly.
-    """
-    rec = pycolmap.Reconstruction(workspace / "sparse")
-    sizes = {}
-    for image in rec.images.values():
-        if image.camera_id not in sizes:
-            bitmap = cv2.imread(str(workspace / "images" / image.name), cv2.IMREAD_UNCHANGED)
-            if bitmap is None:
-                raise ValueError(f"{workspace / 'images' / image.name}: unreadable undistorted image")
-            sizes[image.camera_id] = (bitmap.shape[1], bitmap.shape[0])
-    stale = {
-        cid: size for cid, size in sizes.items() if size != (rec.camera(cid).width, rec.camera(cid).height)
-    }
-    for camera_id, (width, height) in stale.items():
-        rec.camera(camera_id).rescale(width, height)
-    if stale:
-        rec.write(workspace / "sparse")
-
-
-def read_views(workspace: Path) -> dict[str, View]:
-    """The undistorted views of a workspace by image name."""
-    rec = pycolmap.Reconstruction(Path(workspace) / "sparse")
-    views = {}
-    for image_id in rec.reg_image_ids():
-        image = rec.image(image_id)
-        cam = image.camera
-        if cam.model != pycolmap.CameraModelId.PINHOLE:
-            raise ValueError(
-                f"{workspace}: undistorted camera of {image.name} is {cam.model}, expected PINHOLE"
-            )
-        fx, fy, cx, cy = cam.params
-        K = np.array([[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]])
-        pose = image.cam_from_world()
-        views[image.name] = View(
-            image.name,
-            K,
-            pose.rotation.matrix(),
-            np.asarray(pose.translation),
-            int(cam.width),
-            int(cam.height),
-        )
-    return views
-
-
-def select_partners(workspace: Path, views: Mapping[str, View], cfg: Mapping) -> dict[str, list[str]]:
-    """Stereo partners of every view, best first.
-
-    A partner shares at least ``min_shared_points`` sparse points with the reference, its median
-    triangulation angle at those points lies in [``min_triangulation_angle_deg``,
-    ``max_triangulation_angle_deg``] (too small: poor depth resolution; too large: poor matching),
-    and the baseline makes at least ``min_baseline_axis_angle_deg`` with both optical axes (the
-    epipoles stay far outside the images, so rectification does not blow up). Among those, the
-    ``num_partners`` with the highest score are kept: shared points, scaled down linearly for
-    angles below ``partner_ideal_angle_deg`` (a wider angle gives a finer depth resolution).
-    """
-    model = pycolmap.MVSModel()
-    model.read(str(workspace), "COLMAP")
-    shared = model.compute_shared_points()
-    angles = model.compute_triangulation_angles(50.0)
-    lo = math.radians(float(cfg["min_triangulation_angle_deg"]))
-    hi = math.radians(float(cfg["max_triangulation_angle_deg"]))
-    min_axis = math.radians(float(cfg["min_baseline_axis_angle_deg"]))
-    min_shared = int(cfg["min_shared_points"])
-    num_partners = int(cfg["num_partners"])
-    ideal = max(math.radians(float(cfg["partner_ideal_angle_deg"])), 1e-6)
-    partners: dict[str, list[str]] = {}
-    for ref_idx in range(len(shared)):
-        ref_name = model.get_image_name(ref_idx)
-        ref = views[ref_name]
-        candidates = []
-        for src_idx, n_shared in shared[ref_idx].items():
-            angle = angles[ref_idx].get(src_idx, 0.0)
-            if n_shared < min_shared or not (lo <= angle <= hi):
-                continue
-            src = views[model.get_image_name(src_idx)]
-            baseline = src.center - ref.center
-            norm = np.linalg.norm(baseline)
-            if norm == 0:
-                continue
-            cos_axes = np.abs(np.array([ref.forward @ baseline, src.forward @ baseline])) / norm
-            if np.any(np.arccos(np.clip(cos_axes, 0.0, 1.0)) < min_axis):
-                continue
-            candidates.append((n_shared * min(1.0, angle / ideal), src.name))
-        candidates.sort(reverse=True)
-        partners[ref_name] = [name for _, name in candidates[:num_partners]]
-    return partners
-
-
-def overlapping_views(workspace: Path) -> dict[str, list[str]]:
-    """Every view's other views by the sparse points they share with it, most first."""
-    model = pycolmap.MVSModel()
-    model.read(str(workspace), "COLMAP")
-    shared = model.compute_shared_points()
-    return {
-        model.get_image_name(ref): [
-            model.get_image_name(src) for src, _ in sorted(shared[ref].items(), key=lambda kv: -kv[1])
-        ]
-        for ref in range(len(shared))
-    }
 
 
 def rectify_pair(ref: View, src: View, disparity_offset: int = 0, pad_left: int = 0) -> RectifiedPair | None:
@@ -514,33 +348,6 @@ def normals_from_depth(depth: np.ndarray, K: np.ndarray, window: int) -> np.ndar
     normals[facing_away] *= -1.0
     normals[~ok] = 0.0
     return normals.astype(np.float32)
-
-
-def write_maps(workspace: Path, name: str, depth: np.ndarray, normals: np.ndarray) -> None:
-    """Write a geometric depth map (0 = none) and normal map in COLMAP's format, atomically."""
-    stereo = Path(workspace) / "stereo"
-    depth = np.where(np.isfinite(depth) & np.any(normals != 0, axis=-1), depth, 0.0).astype(np.float32)
-    positive = depth[depth > 0]
-    lo, hi = (float(positive.min()), float(positive.max())) if len(positive) else (0.0, 1.0)
-    depth_map = pycolmap.DepthMap.from_array(depth, lo, hi)
-    normals = np.where((depth > 0)[..., None], normals, 0.0).astype(np.float32)
-    # pycolmap 4.0.4's NormalMap.from_array copies the (H, W, 3) buffer verbatim, but COLMAP stores
-    # maps channel by channel: hand it the planar buffer (tests/test_reconstruct.py checks the file).
-    planar = np.ascontiguousarray(normals.transpose(2, 0, 1)).reshape(normals.shape)
-    normal_map = pycolmap.NormalMap.from_array(planar)
-    write_atomic(stereo / "depth_maps" / f"{name}{DEPTH_SUFFIX}", lambda p: depth_map.write(p))
-    write_atomic(stereo / "normal_maps" / f"{name}{DEPTH_SUFFIX}", lambda p: normal_map.write(p))
-
-
-def sparse_points_by_image(workspace: Path) -> dict[str, np.ndarray]:
-    """The sparse world points (P, 3) each registered view of the workspace sees, by image name."""
-    rec = pycolmap.Reconstruction(Path(workspace) / "sparse")
-    points_by_name = {}
-    for image_id in rec.reg_image_ids():
-        image = rec.image(image_id)
-        ids = [p.point3D_id for p in image.points2D if p.has_point3D()]
-        points_by_name[image.name] = np.array([rec.point3D(i).xyz for i in ids]) if ids else np.zeros((0, 3))
-    return points_by_name
 
 
 def reference_views(incidence, per_point: int, min_new_points: int) -> np.ndarray:

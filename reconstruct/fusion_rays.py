@@ -32,25 +32,7 @@ import cv2
 import numpy as np
 
 from reconstruct.depth_filter import project
-
-
-def read_maps(workspace: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
-    """A view's geometric depth (H, W) (NaN where none) and camera-frame normals (H, W, 3)."""
-    import pycolmap
-
-    from reconstruct.dense import DEPTH_SUFFIX
-
-    stereo = Path(workspace) / "stereo"
-    depth_map = pycolmap.DepthMap()
-    depth_map.read(str(stereo / "depth_maps" / f"{name}{DEPTH_SUFFIX}"))
-    depth = depth_map.to_array().astype(np.float32)
-    depth[~(depth > 0)] = np.nan
-    normal_map = pycolmap.NormalMap()
-    normal_map.read(str(stereo / "normal_maps" / f"{name}{DEPTH_SUFFIX}"))
-    h, w = depth.shape
-    # COLMAP stores maps channel by channel (reconstruct.dense.write_maps).
-    normals = normal_map.to_array().reshape(3, h, w).transpose(1, 2, 0).astype(np.float32)
-    return depth, normals
+from reconstruct.workspace import read_maps
 
 
 class _MapCache:

@@ -23,7 +23,7 @@ import numpy as np
 import open3d as o3d
 import trimesh
 
-from reconstruct.dense import read_views, select_partners, write_maps
+from reconstruct.workspace import read_views, select_partners, write_maps
 from scene.enclosure import raycasting_scene
 
 

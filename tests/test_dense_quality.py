@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from reconstruct.dense import View, fuse, normals_from_depth, write_maps
+from reconstruct.dense import fuse, normals_from_depth
 from reconstruct.depth_filter import edge_pixels, geometric_support
 from reconstruct.fusion_support import supported_points
 from reconstruct.oracle import oracle_view, stereo_depth_sigma
+from reconstruct.workspace import View, write_maps
 from scene.camera import Intrinsics, cam_from_world, look_at
 from scene.enclosure import raycasting_scene
 from tests.test_reconstruct import box_world_mesh, reconstruct_cfg

@@ -6,7 +6,7 @@ import numpy as np
 import trimesh
 
 from experiments.depth_errors import depth_error_row, ground_truth_depth, triangulation_angle_deg
-from reconstruct.dense import View
+from reconstruct.workspace import View
 from scene.enclosure import raycasting_scene
 
 

@@ -24,7 +24,6 @@ from omegaconf import OmegaConf
 from reconstruct.align import align_to_gnss, deregister_gnss_outliers, merge_model, pose_errors
 from reconstruct.dense import (
     RectifiedPair,
-    View,
     consistent_depth,
     disparity_search_range,
     fuse,
@@ -32,10 +31,8 @@ from reconstruct.dense import (
     fusion_chunk_size,
     normals_from_depth,
     pair_depth,
-    prepare_workspace,
     reference_views,
     textured_pixels,
-    write_maps,
 )
 from reconstruct.errors import ReconstructionError
 from reconstruct.flight import Flight, read_flight, simulate_gnss
@@ -45,6 +42,7 @@ from reconstruct.proxy import degraded_ground_truth, oriented_cloud, poisson_pro
 from reconstruct.sfm import map_reconstruction, pose_prior_pairs, sfm_options, write_pose_priors
 from reconstruct.sfm_settings import COLMAP_LOCAL_BA
 from reconstruct.timing import stage_time
+from reconstruct.workspace import View, prepare_workspace, write_maps
 from scene.base import Box, MeshPart, Scene
 from scene.camera import Intrinsics, cam_from_world, look_at
 from tests.workspaces import shared_point_model
