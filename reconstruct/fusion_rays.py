@@ -52,6 +52,11 @@ class _MapCache:
         return self.maps[name]
 
 
+# A tangent plane within acos(0.1) = 84 deg of the ray's normal incidence is met by the ray; a more
+# grazing one is not trusted (the neighbour's point's foot on the ray is used instead).
+GRAZING_COS = 0.1
+
+
 def fuse_along_rays(
     workspace: Path,
     names: Sequence[str],
@@ -113,14 +118,21 @@ def fuse_along_rays(
             with np.errstate(invalid="ignore"):
                 agree = np.abs(measured - z[idx]) <= rel_tol * z[idx]
             agree &= ~used[other][r, c]
-            agree &= (
-                np.einsum("ij,ij->i", n_other[r, c].astype(np.float64) @ view.rotation, n_ref_world[idx])
-                >= min_cos
-            )
-            idx, r, c = idx[agree], r[agree], c[agree]
-            # The neighbour's measured point, carried onto the reference's ray: its depth there.
+            n_other_world = n_other[r, c].astype(np.float64) @ view.rotation
+            agree &= np.einsum("ij,ij->i", n_other_world, n_ref_world[idx]) >= min_cos
+            idx, r, c, n_other_world = idx[agree], r[agree], c[agree], n_other_world[agree]
+            # The neighbour's measurement carried onto the reference's ray: where the ray meets the
+            # neighbour's tangent plane (its point and normal). The nearest pixel's point lies up to
+            # half a pixel across the surface from the ray; on a slanted surface its foot on the
+            # ray would be off by that much times the slope (grazing planes fall back to the foot).
             other_points = back_project_pixels(view, c, r, measured[agree])
-            t = ((other_points - ref.center) * world_rays[idx]).sum(-1) / (world_rays[idx] ** 2).sum(-1)
+            offset = other_points - ref.center
+            ray = world_rays[idx]
+            facing = np.einsum("ij,ij->i", ray, n_other_world)
+            foot = np.einsum("ij,ij->i", offset, ray) / np.einsum("ij,ij->i", ray, ray)
+            grazing = np.abs(facing) < GRAZING_COS * np.linalg.norm(ray, axis=1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = np.where(grazing, foot, np.einsum("ij,ij->i", offset, n_other_world) / facing)
             w = _precision(measured[agree].astype(np.float64), baselines.get(other, 1.0))
             weighted[idx] += w * t
             total[idx] += w

@@ -601,6 +601,10 @@ def test_a_fused_point_belongs_to_the_chunk_owning_most_of_its_views(tmp_path):
         read_visibility(path)
 
 
+# COLMAP's fusion walking to 6 neighbours of each view: the fusion that holds every view, and chunks.
+COLMAP_FUSION = {"dense.fusion.check_num_images": 6, "dense.fusion.method": "colmap"}
+
+
 def test_an_auto_fusion_budget_chunks_to_the_memory_free(box_reconstruction, tmp_path, monkeypatch):
     """``max_memory_gb: auto`` is half the memory free: with 33 views' worth free, 16 a chunk."""
     import psutil
@@ -613,14 +617,15 @@ def test_an_auto_fusion_budget_chunks_to_the_memory_free(box_reconstruction, tmp
     view_bytes = 20 * 320 * 240
     free = type("Free", (), {"available": 33.5 * view_bytes})()
     monkeypatch.setattr(psutil, "virtual_memory", lambda: free)
-    cfg = reconstruct_cfg(**{"dense.fusion.check_num_images": 6}).dense
+    # COLMAP's fusion (the proxy's) holds every view and chunks; the ray fusion holds a few.
+    cfg = reconstruct_cfg(**COLMAP_FUSION).dense
     assert fusion_chunk_size(workspace, names, fusion_budget_gb("auto")) == 16
     report = fuse_report(workspace, tmp_path / "auto.ply", cfg, names, deterministic=True)
     assert report.n_chunks >= 3 and report.max_memory_gb == pytest.approx(0.5 * 33.5 * view_bytes / 1e9)
     single = fuse(
         workspace,
         tmp_path / "one.ply",
-        reconstruct_cfg(**{"dense.fusion.check_num_images": 6, "dense.fusion.max_memory_gb": None}).dense,
+        reconstruct_cfg(**{**COLMAP_FUSION, "dense.fusion.max_memory_gb": None}).dense,
         names,
         deterministic=True,
     )
@@ -634,7 +639,7 @@ def test_fusion_in_chunks_covers_the_single_pass_cloud(box_reconstruction, tmp_p
     out_dir, _ = box_reconstruction
     workspace = out_dir / "dense"
     names = sorted(p.name for p in (workspace / "images").iterdir())
-    cfg = reconstruct_cfg(**{"dense.fusion.check_num_images": 6}).dense
+    cfg = reconstruct_cfg(**COLMAP_FUSION).dense
     # The default budget, half the memory free (auto), holds these 33 small views at once.
     assert cfg.fusion.max_memory_gb == "auto"
     assert fusion_chunk_size(workspace, names, fusion_budget_gb("auto")) is None
