@@ -14,7 +14,8 @@ is projected into its ``ray_neighbours`` most overlapping views; a neighbour con
 own depth at the projected pixel (nearest) lies within ``max_depth_error`` (relative) of the
 point's depth in that view and its normal within ``max_normal_error``. A pixel confirmed by at least
 ``min_num_pixels - 1`` neighbours becomes one point on the reference's ray, at the mean of the
-measured depths along that ray weighted by each measurement's precision: the stereo model's
+measured depths along that ray (each neighbour's: where the ray meets the tangent plane of its
+measured point and normal) weighted by each measurement's precision: the stereo model's
 ``1 / sigma_z^2`` with ``sigma_z ~ z^2 / B`` (z the depth in the measuring view, B its stereo
 baseline), so a far or narrow-baseline view counts less than a close, wide one. The confirming
 pixels are marked used and seed no point of their own. Points are whole rays of the depth maps,
