@@ -79,29 +79,29 @@ RAY_FUSION_KEYS = ("method", "ray_neighbours", "ray_voxel_m")
 SUPPORT_FILTER_KEYS = ("support_share", "support_radius_m")
 
 
+def _without(section: dict, keys, drop: bool) -> dict:
+    return {k: v for k, v in section.items() if k not in keys} if drop else section
+
+
 def _in_effect(section: str, value, fusion_bytes: float = 0.0):
     # The other mapper's settings cannot change a model: a new global-only setting must not move
     # the cache keys of incremental runs (their proxies stay valid). Nor can a fusion memory budget
     # the flight's fusion (``fusion_bytes``, bytes) stays within.
     if section == "dense" and isinstance(value, dict) and isinstance(value.get("fusion"), dict):
-        budget = fusion_budget_gb(value["fusion"].get(FUSION_BUDGET_KEY))
+        fusion = value["fusion"]
+        budget = fusion_budget_gb(fusion.get(FUSION_BUDGET_KEY))
         binds = budget is not None and fusion_bytes > budget * 1e9
-        fusion = {k: v for k, v in value["fusion"].items() if k != FUSION_BUDGET_KEY or binds}
-        # Fusion settings added after records: at COLMAP's fusion and no support filter, they fuse
-        # as before they existed.
-        if fusion.get("method", "colmap") == "colmap":
-            fusion = {k: v for k, v in fusion.items() if k not in RAY_FUSION_KEYS}
-        if not fusion.get("support_share"):
-            fusion = {k: v for k, v in fusion.items() if k not in SUPPORT_FILTER_KEYS}
-        if value.get(REFERENCE_VIEWS_KEYS[0]) is None:  # added after records: off, every view as before
-            value = {k: v for k, v in value.items() if k not in REFERENCE_VIEWS_KEYS}
-        if value.get("backend") != "oracle":  # the oracle's noise moves no other back-end's cloud
-            value = {k: v for k, v in value.items() if k != "oracle"}
-        # Depth filters added after records: off, they filter as before they existed.
-        if not value.get("edge_margin_px"):
-            value = {k: v for k, v in value.items() if k != "edge_margin_px"}
-        if not (value.get("geometric_consistency") or {}).get("min_views"):
-            value = {k: v for k, v in value.items() if k != "geometric_consistency"}
+        # Settings added after records: where they are off they act as before they existed, so
+        # they leave the keys alone.
+        fusion = _without(fusion, (FUSION_BUDGET_KEY,), not binds)
+        fusion = _without(fusion, RAY_FUSION_KEYS, fusion.get("method", "colmap") == "colmap")
+        fusion = _without(fusion, SUPPORT_FILTER_KEYS, not fusion.get("support_share"))
+        value = _without(value, REFERENCE_VIEWS_KEYS, value.get(REFERENCE_VIEWS_KEYS[0]) is None)
+        # The oracle's noise moves no other back-end's cloud.
+        value = _without(value, ("oracle",), value.get("backend") != "oracle")
+        value = _without(value, ("edge_margin_px",), not value.get("edge_margin_px"))
+        gc_off = not (value.get("geometric_consistency") or {}).get("min_views")
+        value = _without(value, ("geometric_consistency",), gc_off)
         return {**value, "fusion": fusion}
     if section != "sfm" or not isinstance(value, dict) or not isinstance(value.get("mapping"), dict):
         return value
