@@ -13,7 +13,8 @@
 #       libX11.so.6 libXext.so.6 libxcb.so.1 libXau.so.6 libXdmcp.so.6 libbsd.so.0 libmd.so.0 as real
 #       files from `apt-get download libsm6 libice6 libx11-6 libxext6 libxcb1 libxau6 libxdmcp6 libbsd0
 #       libmd0` + dpkg -x (Debian bookworm). libcurand.so.10 is the device's (CUDA 13 toolkit).
-#   .dense_cuda/workspace.tar  `python -m benchmarks.dense_cuda workspace ...` (12 MB)
+#   .dense_cuda/workspace.tar  `python -m benchmarks.dense_cuda workspace ...` (12 MB; may be xz-compressed
+#       as workspace.tar.xz to fit the carry budget with the pycolmap archive)
 #   .render_whl/  mujoco==4.0.0 mujoco-core==4.0.0 pyopengl==3.1.10 trimesh==5.2.0 wheels + the
 #       exploratory flight's plan/viewpoints.csv;  .gl/  the README's GL loader .debs.
 set -o pipefail
