@@ -36,7 +36,7 @@ import trimesh
 
 from experiments.observations import GT_REGION_FILE, SPARSE_DIR
 from experiments.runs import RunDirectoryError, read_run_config, tool_parser
-from reconstruct.dense import consistent_depth, pair_depth
+from reconstruct.dense import consistent_depth, pair_depth, partner_weights
 from reconstruct.workspace import View, prepare_workspace, read_views, select_partners, sparse_points_by_image
 from scene.enclosure import raycasting_scene
 from scene.io import write_text_atomic
@@ -128,7 +128,7 @@ def analyse_run(run_dir: Path, n_views: int | None, workdir: Path) -> pd.DataFra
             "view": name,
             "gt_depth50_m": float(np.nanmedian(gt)) if has_gt.any() else np.nan,
         }
-        depths = []
+        depths, measured = [], []
         for src_name in partners[name]:
             src = views[src_name]
             src_gray = cv2.imread(str(workspace / "images" / src_name), cv2.IMREAD_GRAYSCALE)
@@ -143,10 +143,14 @@ def analyse_run(run_dir: Path, n_views: int | None, workdir: Path) -> pd.DataFra
                 rows.append(row | {"valid_share": 0.0})
                 continue
             depths.append(depth)
+            measured.append(src)
             rows.append(row | depth_error_row(depth, gt, walls))
         if depths:
             combined = consistent_depth(
-                np.stack(depths), int(dense_cfg.min_consistent_partners), float(dense_cfg.consistency_rel_tol)
+                np.stack(depths),
+                int(dense_cfg.min_consistent_partners),
+                float(dense_cfg.consistency_rel_tol),
+                partner_weights(ref, measured, dense_cfg),
             )
             rows.append(
                 base

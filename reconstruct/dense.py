@@ -21,7 +21,7 @@ import math
 import os
 import shutil
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,6 +42,7 @@ from reconstruct.workspace import (
     read_views,
     select_partners,
     sparse_points_by_image,
+    stereo_baselines,
     write_maps,
 )
 from scene.io import write_atomic, write_text_atomic
@@ -266,11 +267,14 @@ def pair_depth(
     return depth
 
 
-def consistent_depth(depths: np.ndarray, min_consistent: int, rel_tol: float) -> np.ndarray:
+def consistent_depth(
+    depths: np.ndarray, min_consistent: int, rel_tol: float, weights: np.ndarray | None = None
+) -> np.ndarray:
     """Combine per-partner depth maps (K, H, W) (NaN = none) into one (H, W) (NaN = rejected).
 
     A pixel is kept when at least ``min(min_consistent, K)`` partners lie within ``rel_tol``
-    (relative) of the partners' median; its depth is the mean of those agreeing partners.
+    (relative) of the partners' median; its depth is the mean of those agreeing partners, weighted
+    by ``weights`` (K,) (each partner's precision; None: equal weights).
     """
     depths = np.asarray(depths, dtype=np.float32)
     needed = max(1, min(int(min_consistent), depths.shape[0]))
@@ -287,11 +291,22 @@ def consistent_depth(depths: np.ndarray, min_consistent: int, rel_tol: float) ->
     with np.errstate(invalid="ignore"):
         agree = np.abs(depths - median) <= rel_tol * median
     count = agree.sum(axis=0)
-    total = np.where(agree, depths, 0.0).sum(axis=0)
+    w = np.ones(depths.shape[0], np.float64) if weights is None else np.asarray(weights, np.float64)
+    w = np.where(agree, w[:, None, None], 0.0)
+    total = (w * np.where(agree, depths, 0.0)).sum(axis=0)
     out = np.full(median.shape, np.nan, np.float32)
     keep = count >= needed
-    out[keep] = total[keep] / count[keep]
+    out[keep] = total[keep] / w.sum(axis=0)[keep]
     return out
+
+
+def partner_weights(ref: View, partners: Sequence[View], cfg: Mapping) -> np.ndarray | None:
+    """The weights of ``partners``' depth maps in ``ref``'s combined map (``consistent_depth``):
+    with ``partner_weights: precision`` each pair's precision, ``B^2`` (at one reference pixel every
+    partner's depth noise is ``z^2 / (f B) s``); None (equal weights) otherwise."""
+    if cfg.get("partner_weights", "equal") != "precision":
+        return None
+    return np.array([float(np.sum((p.center - ref.center) ** 2)) for p in partners])
 
 
 def normals_from_depth(depth: np.ndarray, K: np.ndarray, window: int) -> np.ndarray:
@@ -451,14 +466,16 @@ def compute_depth_maps_cpu(workspace: Path, cfg: Mapping) -> dict[str, int]:
         if name not in references or not partners.get(name):
             return name, 0
         ref_gray = gray(name)
-        depths = []
+        depths, measured = [], []
         for src_name in partners[name]:
             depth = pair_depth(ref, views[src_name], ref_gray, gray(src_name), points_by_name[name], cfg)
             if depth is not None:
                 depths.append(depth)
+                measured.append(views[src_name])
         if not depths:
             return name, 0
-        depth = consistent_depth(np.stack(depths), min_consistent, rel_tol)
+        weights = partner_weights(ref, measured, cfg)
+        depth = consistent_depth(np.stack(depths), min_consistent, rel_tol, weights)
         depth[edge_pixels(depth, edge_margin)] = np.nan
         if checked:
             np.save(raw_dir / f"{name.replace('/', '__')}.npy", depth)
@@ -688,23 +705,25 @@ def _fuse_in_chunks(
 
 def _fuse_rays(workspace: Path, output_ply: Path, cfg: Mapping, names: list[str]) -> int:
     """``fusion.method: rays`` (``reconstruct.fusion_rays``): points on the depth maps' rays."""
-    from reconstruct.fusion_rays import best_supported_per_voxel, fuse_along_rays
+    from reconstruct.fusion_rays import best_conditioned_per_voxel, fuse_along_rays, well_conditioned
 
     views = read_views(workspace)
     partners = select_partners(workspace, views, cfg)
-    baselines = {
-        name: float(np.linalg.norm(views[p[0]].center - views[name].center))
-        for name, p in partners.items()
-        if p
-    }
+    baselines = stereo_baselines(views, partners, cfg.get("partner_weights", "equal"))
     cloud = fuse_along_rays(workspace, names, views, overlapping_views(workspace), baselines, cfg["fusion"])
     n_fused = len(cloud["points"])
-    cloud = best_supported_per_voxel(cloud, float(cfg["fusion"].get("ray_voxel_m", 0.0)))
+    fusion = cfg["fusion"]
+    cloud = well_conditioned(
+        cloud, float(fusion.get("conditioning_cell_m", 0.1)), float(fusion.get("conditioning_ratio", 0.0))
+    )
+    n_conditioned = len(cloud["points"])
+    cloud = best_conditioned_per_voxel(cloud, float(fusion.get("ray_voxel_m", 0.0)))
     log.info(
-        "fusion along rays: %d points (%d before one per voxel) from %d views",
-        len(cloud["points"]),
+        "fusion along rays: %d points from %d views (%d after the conditioning filter, %d one per voxel)",
         n_fused,
         len(names),
+        n_conditioned,
+        len(cloud["points"]),
     )
     return _write_cloud(output_ply, cloud, _support_kept(cloud, cfg))
 

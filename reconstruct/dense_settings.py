@@ -39,6 +39,8 @@ class FusionSettings:
     method: str = setting("colmap", choices=("colmap", "rays"))  # rays: reconstruct.fusion_rays
     ray_neighbours: int = setting(12, low=1)
     ray_voxel_m: float = setting(0.0, low=0)
+    conditioning_ratio: float = setting(0.0, low=0)  # reconstruct.fusion_rays.well_conditioned; 0: off
+    conditioning_cell_m: float = setting(0.1, above=0)
     support_radius_m: float = setting(0.03, above=0)
 
     def __post_init__(self) -> None:
@@ -97,6 +99,7 @@ class DenseSettings:
     fusion: FusionSettings = setting()
     patch_match: PatchMatchSettings = setting()
     oracle: OracleSettings = setting()
+    partner_weights: str = setting("equal", choices=("equal", "precision"))
 
     def __post_init__(self) -> None:
         if not self.min_triangulation_angle_deg < self.max_triangulation_angle_deg:

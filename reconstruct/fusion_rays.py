@@ -33,7 +33,11 @@ import cv2
 import numpy as np
 
 from reconstruct.depth_filter import project
+from reconstruct.stereo_noise import stereo_depth_sigma
 from reconstruct.workspace import read_maps
+
+# What ``fuse_along_rays`` returns for every fused point.
+CLOUD_FIELDS = ("points", "normals", "colors", "support", "depth_sigma")
 
 
 class _MapCache:
@@ -78,7 +82,9 @@ def fuse_along_rays(
 
     Returns:
         ``points`` (N, 3), ``normals`` (N, 3) world unit normals, ``colors`` (N, 3) in [0, 1],
-        ``support`` (N,) how many views measured each point (the reference included).
+        ``support`` (N,) how many views measured each point (the reference included),
+        ``depth_sigma`` (N,) the fused depth's standard deviation (m) at one pixel of disparity noise
+        under the stereo model (``1 / sqrt`` of the summed precisions): how well conditioned it is.
     """
     workspace = Path(workspace)
     names = list(names)
@@ -89,7 +95,7 @@ def fuse_along_rays(
     min_cos = math.cos(math.radians(float(cfg["max_normal_error"])))
     used = {name: np.zeros((views[name].height, views[name].width), bool) for name in names}
     cache = _MapCache(workspace, 2 * n_neighbours + 2)
-    out: dict[str, list[np.ndarray]] = {"points": [], "normals": [], "colors": [], "support": []}
+    out: dict[str, list[np.ndarray]] = {key: [] for key in CLOUD_FIELDS}
     for name in names:
         ref = views[name]
         depth, normals = cache[name]
@@ -102,7 +108,7 @@ def fuse_along_rays(
         world_rays = rays @ ref.rotation  # world directions of unit camera depth
         points = ref.center + world_rays * z_ref[:, None]
         n_ref_world = normals[rows, cols].astype(np.float64) @ ref.rotation
-        weight_ref = _precision(z_ref, baselines.get(name, 1.0))
+        weight_ref = _precision(z_ref, ref.K[0, 0], baselines.get(name, 1.0))
         weighted = weight_ref * z_ref
         total = weight_ref.copy()
         support = np.ones(len(rows), np.int32)
@@ -134,7 +140,7 @@ def fuse_along_rays(
             grazing = np.abs(facing) < GRAZING_COS * np.linalg.norm(ray, axis=1)
             with np.errstate(divide="ignore", invalid="ignore"):
                 t = np.where(grazing, foot, np.einsum("ij,ij->i", offset, n_other_world) / facing)
-            w = _precision(measured[agree].astype(np.float64), baselines.get(other, 1.0))
+            w = _precision(measured[agree].astype(np.float64), view.K[0, 0], baselines.get(other, 1.0))
             weighted[idx] += w * t
             total[idx] += w
             support[idx] += 1
@@ -145,28 +151,66 @@ def fuse_along_rays(
         out["normals"].append(n_ref_world[keep] / np.linalg.norm(n_ref_world[keep], axis=1, keepdims=True))
         out["colors"].append(_colours(workspace, name, rows[keep], cols[keep]))
         out["support"].append(support[keep])
+        out["depth_sigma"].append(1.0 / np.sqrt(total[keep]))
         used[name][rows, cols] = True
         for other, idx, r, c in claims:
             fused = keep[idx]
             used[other][r[fused], c[fused]] = True
     if not out["points"]:
         return {key: np.zeros((0, 3)) for key in ("points", "normals", "colors")} | {
-            "support": np.zeros(0, int)
+            "support": np.zeros(0, int),
+            "depth_sigma": np.zeros(0),
         }
     return {key: np.concatenate(value) for key, value in out.items()}
 
 
-def best_supported_per_voxel(cloud: Mapping[str, np.ndarray], voxel_m: float) -> dict[str, np.ndarray]:
-    """One point per ``voxel_m`` cube: the one the most views measured (the first such); 0 keeps all.
+def well_conditioned(cloud: Mapping[str, np.ndarray], cell_m: float, ratio: float) -> dict[str, np.ndarray]:
+    """The points whose ``depth_sigma`` is at most ``ratio`` times the smallest within one
+    ``cell_m`` cube of theirs (their cube of a grid and its 26 neighbours); ``ratio`` 0 keeps all.
 
-    Views that see a surface at a finer resolution than the seeding view leave pixels no seed
-    claimed; those seed near-duplicates of their own. Keeping the best-supported point of each small
-    cube keeps the cloud's density near the survey's GSD and prefers the better-measured points.
+    Where a flight's views overlap many times over, a patch of surface is measured by well
+    conditioned views (close, wide baselines) and by poorly conditioned ones (far, oblique, narrow
+    baselines) alike; fusion confirms both, and the poor ones, several times noisier, set the error
+    percentiles: a denser flight of the same views got *less* accurate (results/dense_stage.md).
+    Dropping a point that a much better measured one stands beside keeps the patch (completeness)
+    and its best measurements: a view added to a flight then adds a point only where it is among
+    the best measured there. Where only poor views saw a patch, their points are its best and stay.
+    The neighbouring cubes count too, so a poor point off the surface by up to a cube is compared
+    with the good points on it.
+    """
+    if ratio <= 0 or len(cloud["points"]) == 0:
+        return dict(cloud)
+    cells = np.floor(cloud["points"] / cell_m).astype(np.int64)
+    cells -= cells.min(axis=0) - 1  # >= 1, so every neighbour index is >= 0
+    span = cells.max(axis=0) + 2
+    keys = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
+    occupied, cell_of = np.unique(keys, return_inverse=True)
+    cell_best = np.full(len(occupied), np.inf)
+    np.minimum.at(cell_best, cell_of.ravel(), cloud["depth_sigma"])
+    near_best = cell_best.copy()
+    for dx, dy, dz in np.ndindex(3, 3, 3):
+        shifted = occupied + ((dx - 1) * span[1] + (dy - 1)) * span[2] + (dz - 1)
+        at = np.minimum(np.searchsorted(occupied, shifted), len(occupied) - 1)
+        found = occupied[at] == shifted
+        near_best[found] = np.minimum(near_best[found], cell_best[at[found]])
+    keep = cloud["depth_sigma"] <= ratio * near_best[cell_of.ravel()]
+    return {key: value[keep] for key, value in cloud.items()}
+
+
+def best_conditioned_per_voxel(cloud: Mapping[str, np.ndarray], voxel_m: float) -> dict[str, np.ndarray]:
+    """One point per ``voxel_m`` cube: the best conditioned (smallest ``depth_sigma``; of equals, the
+    first); 0 keeps all.
+
+    Every view that sees a surface seeds points of its own where no earlier seed claimed its pixels,
+    so the more views a flight has, the more points each patch of surface gets, from far and narrow-
+    baseline views too. Keeping the best conditioned point of each small cube keeps the cloud's
+    density near the survey's GSD and lets a view added to a flight only replace a patch's point by
+    a better measured one, never add a worse one beside it.
     """
     if voxel_m <= 0 or len(cloud["points"]) == 0:
         return dict(cloud)
     cells = np.floor(cloud["points"] / voxel_m).astype(np.int64)
-    order = np.lexsort((-cloud["support"], cells[:, 2], cells[:, 1], cells[:, 0]))
+    order = np.lexsort((cloud["depth_sigma"], cells[:, 2], cells[:, 1], cells[:, 0]))
     sorted_cells = cells[order]
     first = np.ones(len(order), bool)
     first[1:] = np.any(sorted_cells[1:] != sorted_cells[:-1], axis=1)
@@ -180,9 +224,9 @@ def back_project_pixels(view, cols: np.ndarray, rows: np.ndarray, depth: np.ndar
     return view.center + (rays * np.asarray(depth, np.float64)[:, None]) @ view.rotation
 
 
-def _precision(depth: np.ndarray, baseline_m: float) -> np.ndarray:
-    """The stereo model's 1 / sigma_z^2 up to a constant: (B / z^2)^2 (z, B in metres)."""
-    return (float(baseline_m) / np.maximum(depth, 1e-6) ** 2) ** 2
+def _precision(depth: np.ndarray, focal_px: float, baseline_m: float) -> np.ndarray:
+    """The stereo model's 1 / sigma_z^2 (1/m^2) at one pixel of disparity noise (z, B in metres)."""
+    return stereo_depth_sigma(np.maximum(depth, 1e-6), focal_px, baseline_m, 1.0) ** -2
 
 
 def _colours(workspace: Path, name: str, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:

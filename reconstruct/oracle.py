@@ -7,8 +7,9 @@ still count), and the depth gets stereo noise of the pair the view would use:
 
     sigma_z = z^2 / (f * B) * disparity_sigma_px
 
-(z the depth along the optical axis, f the focal length in pixels, B the baseline to the view's
-first stereo partner, metres). Normals are the ground truth's, turned to face the camera. The maps
+(z the depth along the optical axis, f the focal length in pixels, B the baseline of the view's
+combined depth map, ``reconstruct.workspace.stereo_baselines``: its partners' as the real back-end
+combines them, metres). Normals are the ground truth's, turned to face the camera. The maps
 are fused by the same fusion as the real back-end, so the fused cloud scores what the plan allows
 once matching is perfect. A ray-cast per view costs a fraction of one SGBM pair.
 """
@@ -23,14 +24,9 @@ import numpy as np
 import open3d as o3d
 import trimesh
 
-from reconstruct.workspace import read_views, select_partners, write_maps
+from reconstruct.stereo_noise import stereo_depth_sigma
+from reconstruct.workspace import read_views, select_partners, stereo_baselines, write_maps
 from scene.enclosure import raycasting_scene
-
-
-def stereo_depth_sigma(depth: np.ndarray, focal_px: float, baseline_m: float, disparity_sigma_px: float):
-    """Depth noise (m) of a stereo pair at ``depth`` (m): z^2 / (f B) times the disparity noise (px)."""
-    z = np.asarray(depth, dtype=np.float64)
-    return z * z / (float(focal_px) * float(baseline_m)) * float(disparity_sigma_px)
 
 
 def view_rays(K: np.ndarray, rotation: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -88,6 +84,7 @@ def compute_depth_maps_oracle(
     views = read_views(workspace)
     partners = select_partners(workspace, views, cfg)
     sigma_px = float(cfg["oracle"]["disparity_sigma_px"])
+    baselines = stereo_baselines(views, partners, cfg.get("partner_weights", "equal"))
     scene = raycasting_scene(ground_truth)
     valid = {}
     for name in sorted(views):
@@ -95,7 +92,7 @@ def compute_depth_maps_oracle(
         if not partners.get(name):
             valid[name] = 0
             continue
-        baseline = float(np.linalg.norm(views[partners[name][0]].center - ref.center))
+        baseline = baselines[name]
         rng = np.random.default_rng([int(seed), zlib.crc32(name.encode())])
         depth, normals = oracle_view(
             scene, ref.center, ref.K, ref.rotation, (ref.width, ref.height), baseline, sigma_px, rng

@@ -75,7 +75,8 @@ FUSION_BUDGET_KEY = "max_memory_gb"
 # dense: depth maps for a cover of the views only; at null (every view) it leaves the keys alone.
 REFERENCE_VIEWS_KEYS = ("reference_views_per_point", "reference_min_new_points")
 # dense.fusion: the ray fusion's settings (with its method) and the support filter's.
-RAY_FUSION_KEYS = ("method", "ray_neighbours", "ray_voxel_m")
+RAY_FUSION_KEYS = ("method", "ray_neighbours", "ray_voxel_m", "conditioning_ratio", "conditioning_cell_m")
+CONDITIONING_KEYS = ("conditioning_ratio", "conditioning_cell_m")
 SUPPORT_FILTER_KEYS = ("support_share", "support_radius_m")
 
 
@@ -96,10 +97,12 @@ def _in_effect(section: str, value, fusion_bytes: float = 0.0):
         fusion = _without(fusion, (FUSION_BUDGET_KEY,), not binds)
         fusion = _without(fusion, RAY_FUSION_KEYS, fusion.get("method", "colmap") == "colmap")
         fusion = _without(fusion, SUPPORT_FILTER_KEYS, not fusion.get("support_share"))
+        fusion = _without(fusion, CONDITIONING_KEYS, not fusion.get("conditioning_ratio"))
         value = _without(value, REFERENCE_VIEWS_KEYS, value.get(REFERENCE_VIEWS_KEYS[0]) is None)
         # The oracle's noise moves no other back-end's cloud.
         value = _without(value, ("oracle",), value.get("backend") != "oracle")
         value = _without(value, ("edge_margin_px",), not value.get("edge_margin_px"))
+        value = _without(value, ("partner_weights",), value.get("partner_weights", "equal") == "equal")
         gc_off = not (value.get("geometric_consistency") or {}).get("min_views")
         value = _without(value, ("geometric_consistency",), gc_off)
         return {**value, "fusion": fusion}

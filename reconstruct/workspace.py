@@ -187,6 +187,26 @@ def select_partners(workspace: Path, views: Mapping[str, View], cfg: Mapping) ->
     return partners
 
 
+def stereo_baselines(
+    views: Mapping[str, View], partners: Mapping[str, list[str]], partner_weights: str
+) -> dict[str, float]:
+    """Every view's stereo baseline (m): the ``B`` of its depth map's noise ``z^2 / (f B) s``.
+
+    ``partner_weights: precision`` (``reconstruct.dense``) combines the partners' depths weighted by
+    their precision (``B_k^2``), so the combined map's noise is that of one pair with baseline
+    ``sqrt(sum B_k^2)`` (every partner measuring the pixel; fewer is coarser). ``equal``: the former
+    rule, the first (best-scored) partner's baseline.
+    """
+    out = {}
+    for name, chosen in partners.items():
+        if not chosen:
+            continue
+        lengths = [float(np.linalg.norm(views[p].center - views[name].center)) for p in chosen]
+        precision = partner_weights == "precision"
+        out[name] = float(np.sqrt(np.sum(np.square(lengths)))) if precision else lengths[0]
+    return out
+
+
 def overlapping_views(workspace: Path) -> dict[str, list[str]]:
     """Every view's other views by the sparse points they share with it, most first."""
     model = pycolmap.MVSModel()

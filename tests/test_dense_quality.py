@@ -15,7 +15,8 @@ import trimesh
 from reconstruct.dense import fuse, normals_from_depth
 from reconstruct.depth_filter import edge_pixels, geometric_support
 from reconstruct.fusion_support import supported_points
-from reconstruct.oracle import oracle_view, stereo_depth_sigma
+from reconstruct.oracle import oracle_view
+from reconstruct.stereo_noise import stereo_depth_sigma
 from reconstruct.workspace import View, write_maps
 from scene.camera import Intrinsics, cam_from_world, look_at
 from scene.enclosure import raycasting_scene
@@ -200,3 +201,43 @@ def test_the_support_filter_drops_weakly_supported_points_beside_strong_ones():
     # 3 of a neighbour's 12 is dropped; a sparse flight's 3 and 2 views (no better neighbour) stay.
     assert keep.tolist() == [True, False, True, True]
     assert supported_points(points, support, 0.03, 0.0).all()
+
+
+def test_the_conditioning_filter_keeps_a_plane_as_accurate_when_poor_views_are_added():
+    """A plane z = 0 measured by good views (depth sigma 1 cm) over x in [0, 2) m, and poor ones
+    (6 cm: far or narrow-baseline) over x in [0, 3) m; each point's error is its sigma times a
+    normal draw. Without the filter the poor views' points raise the 90th percentile from 1.64 cm
+    (1.645 sigma) to 8.3 cm (0.6 P(|N| > t / 6 cm) = 0.1: t = 1.383 x 6 cm); with it (ratio 2,
+    10 cm cells) the poor points within a cell of good ones go, those where no good view reached
+    stay, and the good views' area is as accurate as they made it."""
+    from reconstruct.fusion_rays import well_conditioned
+
+    rng = np.random.default_rng(0)
+
+    def plane_points(n, x_max, sigma):
+        xy = rng.uniform([0.0, 0.0], [x_max, 1.0], (n, 2))
+        return np.column_stack([xy, sigma * rng.standard_normal(n)]), np.full(n, sigma)
+
+    good, good_sigma = plane_points(20000, 2.0, 0.01)
+    poor, poor_sigma = plane_points(30000, 3.0, 0.06)
+    cloud = {
+        "points": np.vstack([good, poor]),
+        "depth_sigma": np.concatenate([good_sigma, poor_sigma]),
+        "support": np.full(50000, 3),
+    }
+
+    def p90(points):
+        return float(np.percentile(np.abs(points[:, 2]), 90))
+
+    assert p90(good) == pytest.approx(0.0164, abs=0.001)
+    assert p90(cloud["points"]) == pytest.approx(0.0830, abs=0.002)
+    kept = well_conditioned(cloud, 0.1, 2.0)
+    where_good = kept["points"][:, 0] < 2.0
+    # Poor points left there: only those more than 20 cm off (beyond the good cells' neighbours).
+    far_off = (poor[:, 0] < 2.0) & (np.abs(poor[:, 2]) >= 0.2)
+    assert where_good.sum() - len(good) == far_off.sum()
+    assert p90(kept["points"][where_good]) == pytest.approx(p90(good), abs=5e-4)
+    # Beyond x = 2.1 m (a cell past the good views' reach) only poor views measured: all kept.
+    beyond = kept["points"][:, 0] >= 2.1
+    assert beyond.sum() == (poor[:, 0] >= 2.1).sum()
+    assert well_conditioned(cloud, 0.1, 0.0)["points"].shape == (50000, 3)

@@ -13,6 +13,7 @@ import subprocess
 import sys
 import textwrap
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -243,6 +244,26 @@ def test_consistent_depth_keeps_agreeing_partners():
     assert np.isnan(out[0, 3])
     single = consistent_depth(depths[:1], min_consistent=2, rel_tol=0.01)  # one partner: it suffices
     assert single[0, 2] == pytest.approx(5.0)
+
+
+def test_consistent_depth_weights_each_partner_by_its_precision():
+    """Two agreeing partners, baselines 1 and 2 m: weights 1 and 4 (B^2)."""
+    depths = np.array([[[10.0]], [[10.05]]])
+    weighted = consistent_depth(depths, 1, 0.01, weights=np.square([1.0, 2.0]))
+    assert weighted[0, 0] == pytest.approx((10.0 + 4 * 10.05) / 5, abs=1e-5)  # 10.04
+    assert consistent_depth(depths, 1, 0.01)[0, 0] == pytest.approx(10.025, abs=1e-5)
+
+
+def test_stereo_baselines_combine_the_partners_as_their_depths_are_combined():
+    from reconstruct.workspace import stereo_baselines
+
+    views = {
+        name: SimpleNamespace(center=np.array(center, float))
+        for name, center in {"a": (0, 0, 0), "b": (3, 0, 0), "c": (0, 4, 0)}.items()
+    }
+    partners = {"a": ["b", "c"], "b": [], "c": ["a"]}
+    assert stereo_baselines(views, partners, "precision") == pytest.approx({"a": 5.0, "c": 4.0})
+    assert stereo_baselines(views, partners, "equal") == pytest.approx({"a": 3.0, "c": 4.0})
 
 
 def test_disparity_window_holds_the_structure_when_the_span_exceeds_the_cap():
@@ -846,12 +867,16 @@ def test_dense_settings_added_after_the_records_leave_legacy_keys_alone(box_flig
         "dense.geometric_consistency.min_views": 0,
         "dense.fusion.method": "colmap",
         "dense.fusion.support_share": 0.0,
+        "dense.partner_weights": "equal",
+        "dense.fusion.conditioning_ratio": 0.0,
     }
     explicit = reconstruct_cfg(**legacy)
     before = reconstruct_cfg(**legacy)
-    for key in ("edge_margin_px", "geometric_consistency"):
+    for key in ("edge_margin_px", "geometric_consistency", "partner_weights"):
         before.dense.pop(key)
     for key in ("method", "ray_neighbours", "ray_voxel_m", "support_share", "support_radius_m"):
+        before.dense.fusion.pop(key)
+    for key in ("conditioning_ratio", "conditioning_cell_m"):
         before.dense.fusion.pop(key)
     key = flight_content_key(box_flight, flight, before, 0)
     assert flight_content_key(box_flight, flight, explicit, 0) == key
@@ -862,12 +887,15 @@ def test_dense_settings_added_after_the_records_leave_legacy_keys_alone(box_flig
         "dense.geometric_consistency.min_views": 2,
         "dense.fusion.method": "rays",
         "dense.fusion.support_share": 0.3,
+        "dense.partner_weights": "precision",
     }
     keys = {
         flight_content_key(box_flight, flight, reconstruct_cfg(**{**legacy, key: value}), 0)
         for key, value in switched.items()
     }
-    assert len(keys) == 4 and flight_content_key(box_flight, flight, before, 0) not in keys
+    conditioned = {**legacy, "dense.fusion.method": "rays", "dense.fusion.conditioning_ratio": 2.0}
+    keys.add(flight_content_key(box_flight, flight, reconstruct_cfg(**conditioned), 0))
+    assert len(keys) == 6 and flight_content_key(box_flight, flight, before, 0) not in keys
 
 
 def test_a_run_killed_after_sfm_resumes_from_its_sparse_model(box_flight, box_reconstruction, tmp_path):
