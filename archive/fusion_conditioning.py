@@ -60,7 +60,8 @@ def main() -> None:
             m = (key >= lo) & (key < hi)
             if m.any():
                 acc50, acc90 = np.percentile(error[m], [50, 90]) * 100
-                print(f"  [{lo}, {hi}) {m.mean() * 100:5.1f} % of points  acc50 {acc50:5.2f}  acc90 {acc90:6.2f} cm")
+                share = m.mean() * 100
+                print(f"  [{lo}, {hi}) {share:5.1f} % of points  acc50 {acc50:5.2f}  acc90 {acc90:6.2f} cm")
     settings = load_settings("default", [], no_vis=True)
 
     def show(label, c):
