@@ -39,9 +39,7 @@ def main() -> None:
     views = read_views(workspace)
     partners = select_partners(workspace, views, cfg)
     baselines = stereo_baselines(views, partners, cfg.partner_weights)
-    names = sorted(
-        p.name[: -len(DEPTH_SUFFIX)] for p in (workspace / "stereo" / "depth_maps").iterdir()
-    )
+    names = sorted(p.name[: -len(DEPTH_SUFFIX)] for p in (workspace / "stereo" / "depth_maps").iterdir())
     cloud = fuse_along_rays(workspace, names, views, overlapping_views(workspace), baselines, cfg.fusion)
     scene = load_scene_by_name(scene_name)
     region = scene.evaluation_region
