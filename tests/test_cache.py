@@ -98,6 +98,8 @@ def test_exploration_key_follows_the_scene_content_not_only_its_config():
 
     assert key_with("reconstruct.keep_dense_workspace=false") == exploration_cache_key(cfg, same_a)
     assert key_with("reconstruct.dense.num_partners=7") != exploration_cache_key(cfg, same_a)
+    # The exploratory flight fuses with COLMAP's fusion: the ray fusion's filter is not its setting.
+    assert key_with("reconstruct.dense.fusion.conditioning_ratio=3") == exploration_cache_key(cfg, same_a)
     assert key_with("reconstruct.proxy.roi_margin_m=null") != exploration_cache_key(cfg, same_a)
     # The global mapper's own settings do not move an incremental run's key; they do move a global one's.
     assert key_with("reconstruct.sfm.mapping.global_prior_ba=false") == exploration_cache_key(cfg, same_a)
