@@ -714,7 +714,7 @@ def _fuse_rays(workspace: Path, output_ply: Path, cfg: Mapping, names: list[str]
     n_fused = len(cloud["points"])
     fusion = cfg["fusion"]
     cloud = well_conditioned(
-        cloud, float(fusion.get("conditioning_cell_m", 0.1)), float(fusion.get("conditioning_ratio", 0.0))
+        cloud, float(fusion.get("conditioning_cell_m", 0.05)), float(fusion.get("conditioning_ratio", 0.0))
     )
     n_conditioned = len(cloud["points"])
     cloud = best_conditioned_per_voxel(cloud, float(fusion.get("ray_voxel_m", 0.0)))

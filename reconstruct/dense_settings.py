@@ -40,7 +40,7 @@ class FusionSettings:
     ray_neighbours: int = setting(12, low=1)
     ray_voxel_m: float = setting(0.0, low=0)
     conditioning_ratio: float = setting(0.0, low=0)  # reconstruct.fusion_rays.well_conditioned; 0: off
-    conditioning_cell_m: float = setting(0.1, above=0)
+    conditioning_cell_m: float = setting(0.05, above=0)
     support_radius_m: float = setting(0.03, above=0)
 
     def __post_init__(self) -> None:
