@@ -22,7 +22,7 @@ import argparse
 import logging
 import math
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -57,6 +57,9 @@ ACCURACY = "acc90_m"
 DEFAULT_TARGETS_PCT = (60.0, 70.0, 80.0, 85.0, 90.0)
 DEFAULT_AT_IMAGES = (200, 400, 800)
 COSTS = {"n_images": ("images", 1.0), "flight_time_s": ("flight time (min)", 1.0 / 60.0)}
+# The study's two budget axes: each planner's own knob at the survey's GSD, and the GSD at the default
+# knob.
+AXES = ("budget", "gsd")
 
 
 @dataclass(frozen=True)
@@ -121,24 +124,48 @@ def value_at(costs: Sequence[float], values: Sequence[float], cost: float) -> fl
     return math.nan
 
 
+def on_axis(runs: pd.DataFrame, axis: str = "budget") -> pd.DataFrame:
+    """The runs of one budget axis, with a ``gsd_m`` column (NaN where a record does not name it).
+
+    ``budget``: each planner's own knob at the survey's GSD (per scene the GSD most of its runs flew;
+    a record without one counts as flown at it). ``gsd``: the default knob at every GSD.
+
+    Raises:
+        ValueError: an unknown axis.
+    """
+    if axis not in AXES:
+        raise ValueError(f"axis must be one of {', '.join(AXES)}, got {axis!r}")
+    runs = runs.copy()
+    if "budget" not in runs:
+        runs["budget"] = DEFAULT_LEVEL
+    gsd = pd.to_numeric(runs.get("target_gsd_m", pd.Series(math.nan, index=runs.index)), errors="coerce")
+    runs["gsd_m"] = gsd
+    if axis == "gsd":
+        return runs[(runs["budget"] == DEFAULT_LEVEL) & gsd.notna()]
+    survey = gsd.groupby(runs["scene"]).transform(lambda g: g.mode().iloc[0] if g.notna().any() else math.nan)
+    return runs[gsd.isna() | (gsd == survey)]
+
+
 def front_points(
-    runs: pd.DataFrame, columns: Sequence[str] = ("n_images", "flight_time_s", COMPLETENESS, ACCURACY)
+    runs: pd.DataFrame,
+    columns: Sequence[str] = ("n_images", "flight_time_s", COMPLETENESS, ACCURACY),
+    axis: str = "budget",
+    by_seed: bool = False,
 ) -> pd.DataFrame:
-    """One row per (scene, planner, budget) over the successful runs: the mean and sample standard
+    """One row per (scene, planner, budget), or with ``by_seed`` per (scene, planner, seed, budget), over
+    the successful runs of ``axis`` (``on_axis``; on the ``gsd`` axis the ``budget`` column names the
+    GSD, ``gsd3cm``): the mean and sample standard
     deviation of each of ``columns`` (``<column>`` and ``<column>_std``), ``n`` seeds, ``budget_value``,
-    in table order (scene, method, budget fewest images first)."""
-    ok = runs[runs["status"] == "ok"].copy()
-    if "budget" not in ok:
-        ok["budget"] = DEFAULT_LEVEL
+    in table order (scene, method, budget fewest images first: on the GSD axis the coarsest first)."""
+    ok = on_axis(runs[runs["status"] == "ok"], axis)
+    if axis == "gsd":
+        ok["budget_value"] = ok["gsd_m"]
+        ok["budget"] = ok["gsd_m"].map(gsd_level)
     rows = []
-    for (scene, planner, budget), group in ok.groupby(["scene", "planner", "budget"], sort=False):
-        row = {
-            "scene": scene,
-            "planner": planner,
-            "budget": budget,
-            "method": method_name(planner),
-            "n": len(group),
-        }
+    keys = ["scene", "planner", "seed", "budget"] if by_seed else ["scene", "planner", "budget"]
+    for key, group in ok.groupby(keys, sort=False):
+        row = dict(zip(keys, key, strict=True))
+        row.update(method=method_name(row["planner"]), n=len(group))
         if "budget_value" in group:
             row["budget_value"] = group["budget_value"].iloc[0]
         for column in columns:
@@ -150,9 +177,27 @@ def front_points(
     if points.empty:
         return points
     order = points.apply(
-        lambda r: (scene_sort_key(r["scene"]), method_sort_key(r["planner"]), level_rank(r["budget"])), axis=1
+        lambda r: (
+            scene_sort_key(r["scene"]),
+            method_sort_key(r["planner"]),
+            r["seed"] if by_seed else 0,
+            axis_rank(r["budget"]),
+        ),
+        axis=1,
     )
     return points.loc[order.sort_values().index].reset_index(drop=True)
+
+
+def gsd_level(gsd_m: float) -> str:
+    """A GSD as a point of the GSD axis: ``gsd3cm``, ``gsd4.5cm``."""
+    return f"gsd{gsd_m * 100:g}cm"
+
+
+def axis_rank(level: str) -> float:
+    """Budget order on either axis: a budget level's rank; a GSD level coarsest first."""
+    if level.startswith("gsd") and level.endswith("cm"):
+        return -float(level[3:-2])
+    return float(level_rank(level))
 
 
 def front_table(
@@ -195,6 +240,194 @@ def front_table(
             row[f"acc90_cm_at_{n}"] = value_at(images, acc_cm, n)
         rows.append(row)
     return pd.DataFrame(rows)
+
+
+@dataclass(frozen=True)
+class Question:
+    """One question a front answers, asked of every planner of a scene.
+
+    Attributes:
+        kind: ``images`` / ``minutes`` (the cost to reach ``level`` % completeness at 5 cm, lower is
+            better) or ``completeness`` / ``acc90`` (the value at ``level`` images; completeness
+            higher, acc90 lower is better).
+        level: the completeness (%) or the image count.
+    """
+
+    kind: str
+    level: float
+
+    def text(self) -> str:
+        if self.kind in ("images", "minutes"):
+            unit = "images" if self.kind == "images" else "flight minutes"
+            return f"{unit} to {self.level:g} %"
+        return f"{'completeness' if self.kind == 'completeness' else 'acc90'} at {self.level:g} images"
+
+    def answer(self, front: pd.DataFrame, slack: float = 0.0) -> float:
+        """The front's answer (NaN: not reached, or outside the front's images). ``slack`` lowers a
+        completeness level (noise floor, points) or moves a value towards better (for a tie test)."""
+        images = front["n_images"].to_numpy(float)
+        comp = front[COMPLETENESS].to_numpy(float)
+        if self.kind == "images":
+            return cost_to_reach(images, comp, self.level - slack).cost
+        if self.kind == "minutes":
+            return cost_to_reach(front["flight_time_s"].to_numpy(float) / 60.0, comp, self.level - slack).cost
+        if self.kind == "completeness":
+            return value_at(images, comp, self.level) + slack
+        return value_at(images, front[ACCURACY].to_numpy(float) * 100.0, self.level) - slack
+
+    @property
+    def lower_is_better(self) -> bool:
+        return self.kind != "completeness"
+
+    def floor_key(self) -> str:
+        """The noise floor's metric behind this question's tie (``noise_floor.json``)."""
+        return ACCURACY if self.kind == "acc90" else COMPLETENESS
+
+
+def study_questions(targets_pct=DEFAULT_TARGETS_PCT, at_images=DEFAULT_AT_IMAGES) -> list[Question]:
+    """Images and flight minutes to each completeness target, completeness and acc90 at each count."""
+    return (
+        [Question("images", t) for t in targets_pct]
+        + [Question("minutes", t) for t in targets_pct]
+        + [Question("completeness", n) for n in at_images]
+        + [Question("acc90", n) for n in at_images]
+    )
+
+
+def best_planners(fronts: dict[str, pd.DataFrame], question: Question, floor: Mapping | None = None) -> tuple:
+    """The planners best at ``question`` on one draw of every front (planner -> its points in budget
+    order), with every planner within the noise floor of the best: one that reaches the completeness
+    target less the floor with no more images (minutes) than the best needs for the target, or whose
+    value at the image count lies within the floor of the best. Empty when no front answers."""
+    slack = 0.0
+    if floor is not None:
+        slack = float(floor.get(question.floor_key(), 0.0)) * (100.0 if question.kind == "acc90" else 1.0)
+    answers = {p: question.answer(f) for p, f in fronts.items()}
+    answered = {p: a for p, a in answers.items() if math.isfinite(a)}
+    if not answered:
+        return ()
+    if question.lower_is_better:
+        best = min(answered.values())
+        tied = [p for p, f in fronts.items() if question.answer(f, slack) <= best]
+    else:
+        best = max(answered.values())
+        tied = [p for p, f in fronts.items() if question.answer(f, slack) >= best]
+    return tuple(sorted(tied, key=method_sort_key))
+
+
+def seed_claims(
+    runs: pd.DataFrame,
+    questions: Sequence[Question],
+    floor: Mapping | None = None,
+    axis: str = "budget",
+) -> pd.DataFrame:
+    """Each question per scene answered on each seed's fronts alone (a planner's cells of that seed
+    at each budget), and the claim that survives every seed.
+
+    Columns: scene, question, ``best`` (the planner best on every seed and alone there, else
+    ``tie: A, B`` over every planner best or tied on some seed, ``A on 1 of 3 seeds`` when some seed's
+    fronts do not answer, ``–`` when none does),
+    ``seed_<k>`` (that seed's best, ``A = B`` for a tie within the floor)."""
+    rows = []
+    points = front_points(runs, axis=axis, by_seed=True)
+    seeds = sorted(points["seed"].unique()) if not points.empty else []
+    for scene, at_scene in points.groupby("scene", sort=False):
+        for question in questions:
+            per_seed = {}
+            for seed in seeds:
+                fronts = {
+                    planner: front
+                    for planner, front in at_scene[at_scene["seed"] == seed].groupby("planner", sort=False)
+                }
+                per_seed[seed] = best_planners(fronts, question, floor) if fronts else None
+            answered = [b for b in per_seed.values() if b]
+            tied = sorted({p for b in answered for p in b}, key=method_sort_key)
+            names = ", ".join(method_name(p) for p in tied)
+            if not answered:
+                best = "–"
+            elif len(answered) < len(per_seed):
+                best = (
+                    f"{'tie: ' if len(tied) > 1 else ''}{names} on {len(answered)} of {len(per_seed)} seeds"
+                )
+            elif len(tied) == 1:
+                best = names
+            else:
+                best = f"tie: {names}"
+            row = {"scene": scene, "question": question.text(), "best": best}
+            for seed, b in per_seed.items():
+                row[f"seed_{seed}"] = "n/a" if b is None else (" = ".join(method_name(p) for p in b) or "–")
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def seed_ranges(runs: pd.DataFrame, questions: Sequence[Question], axis: str = "budget") -> pd.DataFrame:
+    """Per scene and planner, each question's answer on each seed's front alone, as ``min–max`` over
+    the seeds (``not reached`` counted: ``1 of 3 not reached``). Columns: scene, method, seeds, one per
+    question."""
+    points = front_points(runs, axis=axis, by_seed=True)
+    rows = []
+    for (scene, planner), fronts in points.groupby(["scene", "planner"], sort=False):
+        per_seed = [front for _, front in fronts.groupby("seed", sort=True)]
+        row = {"scene": scene, "method": method_name(planner), "seeds": len(per_seed)}
+        for question in questions:
+            answers = np.array([question.answer(front) for front in per_seed])
+            decimals = 0 if question.kind == "images" else 1
+            row[question.text()] = _range_text(answers, decimals)
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def _range_text(answers: np.ndarray, decimals: int) -> str:
+    finite = answers[np.isfinite(answers)]
+    if not len(finite):
+        return "–"
+    lo, hi = float(finite.min()), float(finite.max())
+    text = (
+        f"{lo:,.{decimals}f}"
+        if f"{lo:,.{decimals}f}" == f"{hi:,.{decimals}f}"
+        else (f"{lo:,.{decimals}f}–{hi:,.{decimals}f}")
+    )
+    missing = len(answers) - len(finite)
+    return text + (f" ({missing} of {len(answers)}: –)" if missing else "")
+
+
+def seeds_markdown(ranges: pd.DataFrame, claims: pd.DataFrame, floor: Mapping | None = None) -> str:
+    """Per scene: each planner's answers as ranges over seeds, then the claims that hold on every seed."""
+    tie = (
+        f"within the noise floor of the best (completeness {float(floor.get(COMPLETENESS, 0.0)):.1f} "
+        f"points, acc90 {float(floor.get(ACCURACY, 0.0)) * 100:.1f} cm)"
+        if floor
+        else "equal as computed (no noise floor given)"
+    )
+    lines = [
+        "**Seed by seed.** Each seed's fronts on their own (a planner's cells of that seed at each budget): "
+        "the answer as its range over the seeds (–: not reached, or outside the front's images), and "
+        f"the planner best on every seed; a planner best on one seed and not another, or {tie} on any, "
+        "makes the question a tie.",
+        "",
+    ]
+    for scene, rows in ranges.groupby("scene", sort=False):
+        columns = [c for c in rows.columns if c not in ("scene",)]
+        lines += [
+            f"*{scene_name(scene)}*",
+            "",
+            "| " + " | ".join(c[0].upper() + c[1:] for c in columns) + " |",
+        ]
+        lines.append("| :-- | " + " | ".join("--:" for _ in columns[1:]) + " |")
+        lines += ["| " + " | ".join(str(r[c]) for c in columns) + " |" for _, r in rows.iterrows()]
+        lines.append("")
+        at_scene = claims[claims["scene"] == scene]
+        seed_columns = [c for c in at_scene.columns if c.startswith("seed_")]
+        lines += [
+            "| Question | Best on every seed | " + " | ".join(f"Seed {c[5:]}" for c in seed_columns) + " |"
+        ]
+        lines.append("| :-- | :-- | " + " | ".join(":--" for _ in seed_columns) + " |")
+        lines += [
+            f"| {r['question']} | {r['best']} | " + " | ".join(str(r[c]) for c in seed_columns) + " |"
+            for _, r in at_scene.iterrows()
+        ]
+        lines.append("")
+    return "\n".join(lines)
 
 
 def _reach_cell(row, prefix: str, key: str, decimals: int) -> str:
@@ -362,21 +595,45 @@ def write_fronts(
     out_dir: str | Path,
     targets_pct: Sequence[float] = DEFAULT_TARGETS_PCT,
     at_images: Sequence[int] = DEFAULT_AT_IMAGES,
+    floor: Mapping | None = None,
 ) -> list[Path]:
-    """Write the front table (Markdown, CSV, LaTeX), its points (``front_points.csv``) and the two
-    front figures into ``out_dir``; return the files written."""
+    """Write the front table (Markdown, CSV, LaTeX), its points (``front_points.csv``), the answers
+    seed by seed with the claims that hold on every seed (``fronts_by_seed.md``, ``claims.csv``; ties
+    within ``floor``, a ``noise_floor.json``'s floor), the GSD axis's front where cells flew more than
+    one GSD (``fronts_gsd.md``, ``fronts_gsd_by_seed.md``) and the two front figures into ``out_dir``;
+    return the files written."""
     out_dir = Path(out_dir)
     points = front_points(runs)
     if points.empty:
         raise RunDirectoryError("no successful run: no front to draw")
     table = front_table(points, targets_pct, at_images)
+    questions = study_questions(targets_pct, at_images)
+    claims = seed_claims(runs, questions, floor)
     written = [
         write_text_atomic(out_dir / "fronts.md", to_markdown(table, targets_pct, at_images)),
         write_text_atomic(out_dir / "fronts.tex", to_latex(table, targets_pct, at_images)),
         write_text_atomic(out_dir / "fronts.csv", table.to_csv(index=False, lineterminator="\n")),
         write_text_atomic(out_dir / "front_points.csv", points.to_csv(index=False, lineterminator="\n")),
         write_text_atomic(out_dir / "headline.md", headline_markdown(points)),
+        write_text_atomic(
+            out_dir / "fronts_by_seed.md", seeds_markdown(seed_ranges(runs, questions), claims, floor)
+        ),
+        write_text_atomic(out_dir / "claims.csv", claims.to_csv(index=False, lineterminator="\n")),
     ]
+    gsd_points = front_points(runs, axis="gsd")
+    if not gsd_points.empty and gsd_points.groupby(["scene", "planner"]).size().max() > 1:
+        gsd_table = front_table(gsd_points, targets_pct, at_images)
+        gsd_claims = seed_claims(runs, questions, floor, axis="gsd")
+        gsd_ranges = seed_ranges(runs, questions, axis="gsd")
+        written += [
+            write_text_atomic(out_dir / "fronts_gsd.md", to_markdown(gsd_table, targets_pct, at_images)),
+            write_text_atomic(
+                out_dir / "front_points_gsd.csv", gsd_points.to_csv(index=False, lineterminator="\n")
+            ),
+            write_text_atomic(
+                out_dir / "fronts_gsd_by_seed.md", seeds_markdown(gsd_ranges, gsd_claims, floor)
+            ),
+        ]
     for cost, stem in (("n_images", "fronts_images"), ("flight_time_s", "fronts_flight_time")):
         fig = plot_fronts(points, cost)
         path = out_dir / f"{stem}.png"

@@ -3,14 +3,16 @@
 A run directory (images, models, clouds: gigabytes) stays on the machine that ran it; its record,
 ``metrics.json``, ``plan/plan.json`` and ``.hydra/overrides.yaml`` (kilobytes), is what the tables
 and figures are rebuilt from (``experiments.tables`` and ``experiments.figures`` read record folders
-like run directories). It lives in ``results/cells/<preset>/<scene>/<planner>/<budget>/seed<k>/``
-(budget: ``planner.budget``).
+like run directories). It lives in ``results/cells/<preset>/<scene>/<planner>/gsd<g>/<budget>/seed<k>/``
+(g: ``survey.target_gsd_m`` in m/px; budget: ``planner.budget``); a record from before the GSD was
+recorded, in ``.../<planner>/<budget>/seed<k>/``.
 
     uavplan-study record study/default_v4/tomb/yan/seed0 --preset default [--commit]
-    uavplan-study record --queue tomb/yan/0 church/ours/1 tomb/ours/0/high --preset default \\
-        --study study/default_v4 [--set reconstruct.keep_dense_workspace=false] [--force]
+    uavplan-study record --queue tomb/yan/0 church/ours/1 tomb/ours/0/high tomb/smith/0/default/0.02 \\
+        --preset default --study study/default_v4 [--set reconstruct.keep_dense_workspace=false] [--force]
 
-``--queue`` runs each ``scene/planner/seed[/budget]`` cell with ``run.py`` from a detached git worktree
+``--queue`` runs each ``scene/planner/seed[/budget[/gsd]]`` cell (gsd in m/px; the config's
+``survey.target_gsd_m`` when absent) with ``run.py`` from a detached git worktree
 of HEAD, or of ``--revision REV`` (a study's cells all from one code revision while main moves on; the
 committed code: editing the checkout while a cell runs cannot change it; the stage cache
 stays shared), into ``--study/<scene>/<planner>/<budget>/seed<k>``, then records and commits that cell
@@ -22,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import subprocess
 import sys
@@ -46,17 +49,28 @@ RECORD_FILES = {
 }
 
 
-def cell_path(scene: str, planner: str, seed: int, budget: str = DEFAULT_LEVEL) -> Path:
-    """``<scene>/<planner>/<budget>/seed<k>``: a cell's folder under a study or record root."""
+def cell_path(
+    scene: str, planner: str, seed: int, budget: str = DEFAULT_LEVEL, gsd_m: float | None = None
+) -> Path:
+    """``<scene>/<planner>/gsd<g>/<budget>/seed<k>``: a cell's folder under a study or record root
+    (the layout of Hydra's sweep subdirectories, conf/config.yaml); ``<scene>/<planner>/<budget>/seed<k>``
+    for a cell whose GSD is not known (a record from before the GSD was recorded)."""
     level_rank(budget)
-    return Path(scene) / planner / budget / f"seed{int(seed)}"
+    gsd = () if gsd_m is None else (f"gsd{float(gsd_m):g}",)
+    return Path(scene, planner, *gsd, budget, f"seed{int(seed)}")
 
 
 def record_dir(
-    preset: str, scene: str, planner: str, seed: int, budget: str = DEFAULT_LEVEL, root: Path = RECORDS
+    preset: str,
+    scene: str,
+    planner: str,
+    seed: int,
+    budget: str = DEFAULT_LEVEL,
+    gsd_m: float | None = None,
+    root: Path = RECORDS,
 ) -> Path:
     """Where the record of one cell lives."""
-    return Path(root) / preset / cell_path(scene, planner, seed, budget)
+    return Path(root) / preset / cell_path(scene, planner, seed, budget, gsd_m)
 
 
 def record_cell(run_dir: str | Path, preset: str, root: Path = RECORDS) -> tuple[Path, dict]:
@@ -72,8 +86,9 @@ def record_cell(run_dir: str | Path, preset: str, root: Path = RECORDS) -> tuple
     if missing:
         raise RunDirectoryError(f"{run_dir}/metrics.json: no {missing} (not a cell's record)")
     budget = str(metrics.get("budget") or DEFAULT_LEVEL)
+    gsd_m = metrics.get("target_gsd_m")
     dest = record_dir(
-        preset, str(metrics["scene"]), str(metrics["planner"]), int(metrics["seed"]), budget, root
+        preset, str(metrics["scene"]), str(metrics["planner"]), int(metrics["seed"]), budget, gsd_m, root
     )
     for name, source in RECORD_FILES.items():
         path = run_dir / source
@@ -112,16 +127,41 @@ def commit_record(dest: Path, message: str, repo: Path = ROOT) -> None:
     subprocess.run(["git", "-C", str(repo), "commit", "-q", "-m", message, "--", rel], check=True)
 
 
-def parse_cell(text: str) -> tuple[str, str, int, str]:
-    """``scene/planner/seed[/budget]`` -> (scene, planner, seed, budget); budget ``default`` if absent."""
+Cell = tuple[str, str, int, str, "float | None"]
+
+
+def parse_cell(text: str) -> Cell:
+    """``scene/planner/seed[/budget[/gsd]]`` -> (scene, planner, seed, budget, gsd_m); budget
+    ``default`` and gsd ``None`` (the config's) if absent.
+
+    Raises:
+        ValueError: not of that form, an unknown budget level, or a GSD that is not a positive number.
+    """
     parts = text.split("/")
-    if len(parts) not in (3, 4) or not parts[2].isdigit():
+    if len(parts) not in (3, 4, 5) or not parts[2].isdigit():
         raise ValueError(
-            f"a cell is scene/planner/seed[/budget] (e.g. tomb/yan/0, tomb/ours/0/high), got {text!r}"
+            "a cell is scene/planner/seed[/budget[/gsd_m]] (e.g. tomb/yan/0, tomb/ours/0/high, "
+            f"tomb/smith/0/default/0.02), got {text!r}"
         )
-    budget = parts[3] if len(parts) == 4 else DEFAULT_LEVEL
+    budget = parts[3] if len(parts) >= 4 else DEFAULT_LEVEL
     level_rank(budget)
-    return parts[0], parts[1], int(parts[2]), budget
+    gsd_m = None
+    if len(parts) == 5:
+        try:
+            gsd_m = float(parts[4])
+        except ValueError:
+            gsd_m = math.nan
+        if not (math.isfinite(gsd_m) and gsd_m > 0):
+            raise ValueError(f"cell {text!r}: the GSD must be a positive number of m/px, got {parts[4]!r}")
+    return parts[0], parts[1], int(parts[2]), budget, gsd_m
+
+
+def configured_gsd_m(overrides: Sequence[str] = ()) -> float:
+    """``survey.target_gsd_m`` of ``run.py`` with ``overrides`` (a preset may set it)."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base=None):
+        return float(compose("config", overrides=list(overrides)).survey.target_gsd_m)
 
 
 @contextmanager
@@ -146,7 +186,7 @@ def revision_worktree(revision: str, prefix: str = "uavplan_tree_") -> Iterator[
 
 
 def run_queue(
-    cells: Sequence[tuple[str, str, int, str]],
+    cells: Sequence[Cell | tuple],
     preset: str,
     study: Path,
     overrides: Sequence[str] = (),
@@ -155,6 +195,9 @@ def run_queue(
     revision: str = "HEAD",
 ) -> int:
     """Run the cells one after the other from a worktree of ``revision``; record (and commit) each one.
+
+    A cell is ``(scene, planner, seed, budget[, gsd_m[, overrides]])``: gsd_m None is the configured
+    GSD; ``overrides`` are that cell's own ``run.py`` overrides (before the queue's ``overrides``).
 
     Returns the number of cells that failed.
 
@@ -168,9 +211,21 @@ def run_queue(
     if found.returncode != 0:
         raise ValueError(f"--revision {revision!r} names no commit of {ROOT}")
     head = found.stdout.strip()
+    default_gsd = None
+    if any(len(cell) < 5 or cell[4] is None for cell in cells):
+        default_gsd = configured_gsd_m([o for o in overrides if not o.startswith("hydra")])
+    # (scene, planner, seed, budget, gsd_m, overrides of this cell alone)
+    cells = [
+        (
+            *cell[:4],
+            default_gsd if len(cell) < 5 or cell[4] is None else cell[4],
+            tuple(cell[5:6] and cell[5]),
+        )
+        for cell in cells
+    ]
     if commit:
         records = [
-            os.path.relpath(record_dir(preset, *cell) / name, ROOT)
+            os.path.relpath(record_dir(preset, *cell[:5]) / name, ROOT)
             for cell in cells
             for name in ("metrics.json", "plan.json")
         ]
@@ -202,13 +257,15 @@ def run_queue(
     failed = 0
     with revision_worktree(head, prefix="uavplan_queue_") as tree:
         env = dict(os.environ, UAVPLAN_CACHE=str(ROOT / "cache"), PYTHONPATH=str(tree))
-        for scene, planner, seed, budget in cells:
-            name = f"{scene}/{planner}/{seed}" + ("" if budget == DEFAULT_LEVEL else f"/{budget}")
-            recorded = record_dir(preset, scene, planner, seed, budget) / "metrics.json"
+        # the shared meshes' folder (conf/scene/school.yaml) as seen from the checkout, not the worktree
+        env.setdefault("UAVPLAN_MESHES", str((ROOT.parent / "shared" / "data" / "meshes").resolve()))
+        for scene, planner, seed, budget, gsd_m, cell_overrides in cells:
+            name = f"{scene}/{planner}/{seed}/{budget}/{gsd_m:g}"
+            recorded = record_dir(preset, scene, planner, seed, budget, gsd_m) / "metrics.json"
             if recorded.is_file() and not force:
                 print(f"{name}: recorded already (--force runs it again)", flush=True)
                 continue
-            run_dir = (Path(study) / cell_path(scene, planner, seed, budget)).resolve()
+            run_dir = (Path(study) / cell_path(scene, planner, seed, budget, gsd_m)).resolve()
             command = [
                 sys.executable,
                 "run.py",
@@ -216,7 +273,9 @@ def run_queue(
                 f"planner={planner}",
                 f"seed={seed}",
                 f"budget={budget}",
+                f"survey.target_gsd_m={gsd_m!r}",
                 f"hydra.run.dir={run_dir}",
+                *cell_overrides,
                 *overrides,
             ]
             print(f"{name}: running at {head} into {run_dir}", flush=True)
@@ -240,7 +299,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--preset", default="default", help="record folder under results/cells/")
     parser.add_argument("--commit", action="store_true", help="commit each record (always with --queue)")
     parser.add_argument(
-        "--queue", nargs="+", metavar="SCENE/PLANNER/SEED[/BUDGET]", help="cells to run, in order"
+        "--queue", nargs="+", metavar="SCENE/PLANNER/SEED[/BUDGET[/GSD_M]]", help="cells to run, in order"
     )
     parser.add_argument(
         "--study", type=Path, default=Path("study") / "default", help="run directories of --queue"

@@ -34,7 +34,7 @@ from pathlib import Path
 import pandas as pd
 
 from evaluate.record import git
-from experiments.fronts import write_fronts
+from experiments.fronts import on_axis, write_fronts
 from experiments.runs import RunDirectoryError, load_runs, method_sort_key, runs_frame, scene_name
 from experiments.tables import code_provenance, tables_from_runs, write_tables
 from planner.budget import DEFAULT_LEVEL, level_rank
@@ -171,7 +171,8 @@ def write_study(study: str, cells_root: Path = CELLS, out_root: Path = ROOT / "r
     build = Path(tempfile.mkdtemp(prefix=f".{study}.", dir=out.parent))
     try:
         written = []
-        at_default = runs[runs["budget"] == DEFAULT_LEVEL]
+        own_knob = on_axis(runs, "budget").drop(columns="gsd_m")  # Tables I and II: the survey's GSD
+        at_default = own_knob[own_knob["budget"] == DEFAULT_LEVEL]
         if len(at_default):
             written += write_tables(tables_from_runs(at_default.reset_index(drop=True)), build / "tables")
         if (runs["status"] == "ok").any():

@@ -73,6 +73,13 @@ class Run:
         return str(self.metrics.get("budget") or DEFAULT_LEVEL)
 
     @property
+    def gsd_m(self) -> float | None:
+        """The survey's target GSD (m/px, ``survey.target_gsd_m``); None for a run from before it was
+        recorded (every such study cell flew the default 3 cm, ours' former GSD budgets aside)."""
+        value = self.metrics.get("target_gsd_m")
+        return None if value is None else float(value)
+
+    @property
     def ok(self) -> bool:
         """True when the run recorded ``status: ok`` (or no status); any other status counts as failed."""
         return self.metrics.get("status", "ok") == "ok"
@@ -177,7 +184,7 @@ def _config_name(config, key: str) -> str | None:
 def load_runs(paths: Iterable[str | Path]) -> list[Run]:
     """Every run at or below each of ``paths``, one per (scene, planner, seed), in table order.
 
-    When the same (scene, planner, budget, seed) occurs in several directories (a re-run), the one whose
+    When the same (scene, planner, budget, GSD, seed) occurs in several directories (a re-run), the one whose
     ``metrics.json`` is newest is kept and the others are logged: repeating a seed is not a new sample.
 
     Raises:
@@ -190,11 +197,11 @@ def load_runs(paths: Iterable[str | Path]) -> list[Run]:
     for path in paths:
         for run_dir in find_run_dirs(path):
             run = Run(run_dir.resolve(), read_metrics(run_dir))
-            key = (run.scene, run.planner, run.budget, run.seed)
+            key = (run.scene, run.planner, run.budget, run.gsd_m, run.seed)
             if key in by_key and by_key[key].run_dir != run.run_dir:
                 kept, dropped = sorted([by_key[key], run], key=_metrics_mtime, reverse=True)
                 log.warning(
-                    "%s/%s (%s budget) seed %d: using %s, ignoring older %s",
+                    "%s/%s (%s budget, GSD %s) seed %d: using %s, ignoring older %s",
                     *key,
                     kept.run_dir,
                     dropped.run_dir,
@@ -205,8 +212,9 @@ def load_runs(paths: Iterable[str | Path]) -> list[Run]:
 
 
 def run_sort_key(run: Run) -> tuple:
-    """Table order: scene, method, budget (fewest images first), seed."""
-    return (scene_sort_key(run.scene), method_sort_key(run.planner), level_rank(run.budget), run.seed)
+    """Table order: scene, method, budget (fewest images first), GSD (coarsest first), seed."""
+    gsd = -run.gsd_m if run.gsd_m is not None else 0.0
+    return (scene_sort_key(run.scene), method_sort_key(run.planner), level_rank(run.budget), gsd, run.seed)
 
 
 def _metrics_mtime(run: Run) -> float:

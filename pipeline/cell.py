@@ -228,6 +228,7 @@ def cell_record(cfg: DictConfig) -> dict:
         "planner": cfg.planner.name,
         "seed": int(cfg.seed),
         "budget": str(cfg.get("budget", DEFAULT_LEVEL)),
+        "target_gsd_m": float(cfg.survey.target_gsd_m),
         "experiment": cfg.experiment.name,
         "status": "running",
     }

@@ -7,6 +7,9 @@ level, from the fewest images to the most:
       knob: target_gsd_m             # dotted path of the setting (a list: several set together)
       levels: {low: 0.045, high: 0.02}   # ``default`` is the config's own value and needs no entry
 
+A knob of several paths sets each to a level's value, or, where the level is a mapping from path to
+value, each to its own (``{high: {front_overlap: 0.85, side_overlap: 0.85, h_target: 6.0}}``).
+
 ``python run.py planner=ours budget=high`` plans with ``target_gsd_m = 0.02``; ``budget=default``
 (conf/config.yaml) leaves the config as it is. The level, knob and value go into ``metrics.json``
 (``budget``, ``budget_knob``, ``budget_value``) so that fronts join a planner's cells in budget order.
@@ -17,8 +20,9 @@ from __future__ import annotations
 import copy
 from collections.abc import Mapping
 
-# Levels from the fewest images to the most; a front joins a planner's points in this order.
-LEVELS = ("lowest", "low", "default", "high", "highest")
+# Levels from the fewest images to the most; a front joins a planner's points in this order. `mid`
+# lies between `low` and `default`, for a knob whose default is far from its low level (Yan's).
+LEVELS = ("lowest", "low", "mid", "default", "high", "highest")
 DEFAULT_LEVEL = "default"
 # Keys of a planner config that are Hydra's or the study's, not the planner's parameters.
 CONFIG_KEYS = ("name", "_target_", "budget")
@@ -90,12 +94,18 @@ def apply_budget(params: Mapping, level: str, planner: str) -> tuple[dict, dict]
         level_rank(name)
     for path in paths:
         _get(out, path, planner)
+    for name, value in levels.items():
+        if isinstance(value, Mapping) and set(value) != set(paths):
+            raise ValueError(
+                f"planner {planner}: budget level {name!r} sets {sorted(value)}, its knob is {paths}"
+            )
     if level != DEFAULT_LEVEL:
         if level not in levels:
             known = ", ".join(sorted({DEFAULT_LEVEL, *levels}, key=level_rank))
             raise ValueError(f"planner {planner} has no budget level {level!r} (its levels: {known})")
+        value = levels[level]
         for path in paths:
-            _set(out, path, copy.deepcopy(levels[level]))
+            _set(out, path, copy.deepcopy(value[path] if isinstance(value, Mapping) else value))
     return out, {
         "budget": level,
         "budget_knob": ",".join(paths),

@@ -42,13 +42,39 @@ def test_default_is_the_config_as_it_is_and_a_nested_knob_works():
 
 
 def test_levels_are_ordered_fewest_images_first():
-    assert [level_rank(x) for x in ("lowest", "low", "default", "high", "highest")] == [0, 1, 2, 3, 4]
+    assert [level_rank(x) for x in ("lowest", "low", "mid", "default", "high", "highest")] == [
+        0,
+        1,
+        2,
+        3,
+        4,
+        5,
+    ]
+
+
+def test_a_level_may_give_each_knob_path_its_own_value():
+    knob = ["front_overlap", "heuristics.k_count"]
+    config = {
+        **CONFIG,
+        "budget": {"knob": knob, "levels": {"high": {"front_overlap": 0.85, "heuristics.k_count": 6}}},
+    }
+    params, record = apply_budget(config, "high", "toy")
+    assert params["front_overlap"] == 0.85 and params["heuristics"]["k_count"] == 6
+    assert params["side_overlap"] == 0.8
+    assert record == {
+        "budget": "high",
+        "budget_knob": "front_overlap,heuristics.k_count",
+        "budget_value": 0.85,
+    }
+    partial = {**CONFIG, "budget": {"knob": knob, "levels": {"high": {"front_overlap": 0.85}}}}
+    with pytest.raises(ValueError, match=r"budget level 'high' sets \['front_overlap'\], its knob is"):
+        apply_budget(partial, "default", "toy")
 
 
 @pytest.mark.parametrize(
     ("config", "level", "message"),
     [
-        (CONFIG, "medium", "budget must be one of lowest, low, default, high, highest, got 'medium'"),
+        (CONFIG, "medium", "budget must be one of lowest, low, mid, default, high, highest, got 'medium'"),
         (CONFIG, "high", r"planner toy has no budget level 'high' \(its levels: low, default, highest\)"),
         ({**CONFIG, "budget": {"knob": "k_count", "levels": {"low": 2}}}, "low", "'k_count' is not one of"),
         ({k: v for k, v in CONFIG.items() if k != "budget"}, "low", "planner toy has no budget knob"),

@@ -82,13 +82,24 @@ def test_commit_takes_the_record_and_nothing_else(tmp_path):
     assert staged.stdout.split() == ["code.py"]  # the edit stays staged, uncommitted
 
 
-def test_cells_are_scene_planner_seed_and_budget():
-    assert parse_cell("tomb/yan/0") == ("tomb", "yan", 0, "default")
-    assert parse_cell("tomb/ours/2/high") == ("tomb", "ours", 2, "high")
+def test_cells_are_scene_planner_seed_budget_and_gsd():
+    assert parse_cell("tomb/yan/0") == ("tomb", "yan", 0, "default", None)
+    assert parse_cell("tomb/ours/2/high") == ("tomb", "ours", 2, "high", None)
+    assert parse_cell("tomb/smith/1/default/0.045") == ("tomb", "smith", 1, "default", 0.045)
     with pytest.raises(ValueError, match="scene/planner/seed"):
         parse_cell("tomb/yan")
     with pytest.raises(ValueError, match="budget must be one of"):
         parse_cell("tomb/yan/0/huge")
+    for gsd in ("0", "-0.02", "nan", "fine"):
+        with pytest.raises(ValueError, match="the GSD must be a positive number of m/px"):
+            parse_cell(f"tomb/yan/0/default/{gsd}")
+
+
+def test_a_cell_that_records_its_gsd_is_filed_under_it(tmp_path):
+    run = write_run(tmp_path / "study", "church", "yan", 0, n_images=300, budget="mid", target_gsd_m=0.045)
+    dest, _ = record_cell(run, "study", root=tmp_path / "cells")
+    assert dest == tmp_path / "cells" / "study" / "church" / "yan" / "gsd0.045" / "mid" / "seed0"
+    assert dest == record_dir("study", "church", "yan", 0, "mid", 0.045, root=tmp_path / "cells")
 
 
 def test_a_budget_cell_has_its_own_record_and_name(tmp_path):

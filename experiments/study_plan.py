@@ -1,0 +1,216 @@
+"""The study: its cells in the order they run, and what they cost.
+
+    uavplan-study study-plan                                  # the queue by phase, with cell-hours
+    uavplan-study study-plan --phases 1 2 --run --revision REV [--set KEY=VALUE]
+
+``--run`` hands the cells to the record queue (``experiments.record``): one at a time from a worktree
+of ``REV`` (every cell of the study from one revision), each record committed to
+``results/cells/<--preset>/`` as it finishes, a cell recorded already skipped. So the study is
+resumed on any machine by the same command.
+
+The phases, each a complete answer before the next starts:
+
+1. the fronts at seed 0 on the tomb and the church: each planner's own budget knob at the survey's
+   GSD (3 cm);
+2. the GSD axis at seed 0 on the tomb and the church: every planner at its default knob at 2 and
+   4.5 cm (3 cm is phase 1's default cell);
+3. seeds 1 and 2 of phases 1 and 2;
+4. the cathedral's own-knob fronts (low, default, high), seed 0;
+5. the shared meshes (school, power plant): every planner at its default, seed 0;
+6. Yan at the seed paper's scale (3000+ images), tomb, seed 0.
+
+The noise floor (the same cell three times, non-deterministic) has its own command,
+``uavplan-study noise-floor``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pandas as pd
+
+from experiments.runs import RunDirectoryError, load_runs, runs_frame
+from planner.budget import DEFAULT_LEVEL, level_rank
+
+ROOT = Path(__file__).resolve().parents[1]
+
+PLANNERS = ("lawnmower", "smith", "yan", "ours", "ours_plus")
+# Each planner's own-knob levels in the study (conf/planner/<name>.yaml says what a level sets). Chosen
+# so that every front spans 100-300 images where the planner can fly that few (the budget questions
+# are asked at 100, 150, 200 and 300 images); Yan's start at about 220 and leave no gap over 2x.
+OWN_LEVELS = {
+    "lawnmower": ("low", "default", "high"),
+    "smith": ("lowest", "low", "default", "high"),
+    "yan": ("lowest", "low", "mid", "default", "high"),
+    "ours": ("lowest", "low", "default", "high"),
+    "ours_plus": ("lowest", "low", "default", "high"),
+}
+SURVEY_GSD_M = 0.03  # conf/config.yaml survey.target_gsd_m: the own-knob axis flies at it
+GSD_AXIS_M = (0.045, 0.02)  # the GSD axis besides the survey's, coarsest first
+FRONT_SCENES = ("tomb", "church")
+MESH_SCENES = ("school", "powerplant")
+SEEDS = (0, 1, 2)
+# Overrides a scene needs in every cell (conf/scene/powerplant.yaml says why).
+SCENE_OVERRIDES = {"powerplant": ("exploration=lawnmower_orbit",)}
+# Where the cell-hours of a cell not run before are guessed from: the records of earlier studies.
+PAST_RECORDS = ROOT / "results" / "cells"
+UNKNOWN_CELL_H = 0.75  # a cell no earlier record resembles (a mesh scene, a new level)
+
+
+@dataclass(frozen=True)
+class StudyCell:
+    """One cell of the study: what ``run.py`` is given."""
+
+    phase: int
+    scene: str
+    planner: str
+    seed: int
+    budget: str = DEFAULT_LEVEL
+    gsd_m: float = SURVEY_GSD_M
+    overrides: tuple[str, ...] = field(default_factory=tuple)
+
+    def spec(self) -> str:
+        """The record queue's ``scene/planner/seed/budget/gsd`` form."""
+        return f"{self.scene}/{self.planner}/{self.seed}/{self.budget}/{self.gsd_m:g}"
+
+    def queue_cell(self) -> tuple:
+        return (self.scene, self.planner, self.seed, self.budget, self.gsd_m, self.overrides)
+
+
+def study_cells() -> list[StudyCell]:
+    """Every cell of the study, in the order the queue runs them."""
+    cells: list[StudyCell] = []
+
+    def add(phase, scene, planner, seed, budget=DEFAULT_LEVEL, gsd_m=SURVEY_GSD_M):
+        cells.append(StudyCell(phase, scene, planner, seed, budget, gsd_m, SCENE_OVERRIDES.get(scene, ())))
+
+    def fronts(phase, seed):
+        for scene in FRONT_SCENES:
+            for planner in PLANNERS:
+                for level in OWN_LEVELS[planner]:
+                    add(phase, scene, planner, seed, level)
+
+    def gsd_axis(phase, seed):
+        for scene in FRONT_SCENES:
+            for planner in PLANNERS:
+                for gsd in GSD_AXIS_M:
+                    add(phase, scene, planner, seed, DEFAULT_LEVEL, gsd)
+
+    fronts(1, 0)
+    gsd_axis(2, 0)
+    for seed in SEEDS[1:]:
+        fronts(3, seed)
+        gsd_axis(3, seed)
+    for planner in PLANNERS:
+        for level in ("low", DEFAULT_LEVEL, "high"):
+            add(4, "cathedral", planner, 0, level)
+    for scene in MESH_SCENES:
+        for planner in PLANNERS:
+            add(5, scene, planner, 0)
+    add(6, "tomb", "yan", 0, "highest")
+    return cells
+
+
+def past_cell_hours(root: Path) -> pd.DataFrame:
+    """Median wall hours of earlier cells per (scene, planner, budget), from the records of each
+    study under ``root`` (each study's cells its own samples)."""
+    runs = []
+    for path in sorted(p for p in Path(root).iterdir() if p.is_dir()):
+        try:
+            runs += load_runs([path])
+        except RunDirectoryError:
+            continue
+    if not runs:
+        return pd.DataFrame(columns=["scene", "planner", "budget", "hours"])
+    frame = runs_frame(runs)
+    frame = frame[(frame["status"] == "ok") & frame.get("cell_wall_time_s", pd.Series(dtype=float)).notna()]
+    frame = frame.assign(hours=frame["cell_wall_time_s"].astype(float) / 3600.0)
+    return frame.groupby(["scene", "planner", "budget"], as_index=False)["hours"].median()
+
+
+def estimate_hours(cell: StudyCell, past: pd.DataFrame) -> float:
+    """A cell's wall hours guessed from the earlier cell most like it: the same scene, planner and
+    budget; else the same scene and planner at the default budget; else the planner anywhere."""
+    for mask in (
+        (past["scene"] == cell.scene) & (past["planner"] == cell.planner) & (past["budget"] == cell.budget),
+        (past["scene"] == cell.scene) & (past["planner"] == cell.planner) & (past["budget"] == DEFAULT_LEVEL),
+        (past["planner"] == cell.planner) & (past["budget"] == cell.budget),
+    ):
+        if mask.any():
+            return float(past.loc[mask, "hours"].median())
+    return UNKNOWN_CELL_H
+
+
+def plan_table(cells: Sequence[StudyCell], past: pd.DataFrame, recorded: set[str]) -> pd.DataFrame:
+    """Per phase: cells, cells recorded, and estimated cell-hours left."""
+    rows = []
+    for cell in cells:
+        done = cell.spec() in recorded
+        rows.append(
+            {
+                "phase": cell.phase,
+                "cells": 1,
+                "recorded": int(done),
+                "hours_left": 0.0 if done else estimate_hours(cell, past),
+            }
+        )
+    table = pd.DataFrame(rows).groupby("phase", as_index=False).sum()
+    return table
+
+
+def recorded_specs(preset: str, cells: Sequence[StudyCell]) -> set[str]:
+    """The cells of ``cells`` that have a record under ``results/cells/<preset>``."""
+    from experiments.record import record_dir
+
+    return {
+        c.spec()
+        for c in cells
+        if (record_dir(preset, c.scene, c.planner, c.seed, c.budget, c.gsd_m) / "metrics.json").is_file()
+    }
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="uavplan-study study-plan", description=__doc__.splitlines()[0])
+    parser.add_argument("--phases", type=int, nargs="+", help="only these phases (default: all)")
+    parser.add_argument("--preset", default="settled", help="record folder under results/cells/")
+    parser.add_argument("--study", type=Path, default=Path("study") / "settled", help="run directories")
+    parser.add_argument("--list", action="store_true", help="print the cells left, one per line")
+    parser.add_argument("--run", action="store_true", help="run the cells left through the record queue")
+    parser.add_argument("--revision", default="HEAD", help="the commit every cell runs (with --run)")
+    parser.add_argument("--set", action="append", default=[], help="a run.py override for every cell")
+    args = parser.parse_args(argv)
+    cells = study_cells()
+    if args.phases:
+        unknown = sorted(set(args.phases) - {c.phase for c in cells})
+        if unknown:
+            print(f"error: --phases: no phase {unknown} (phases 1-6)", file=sys.stderr)
+            return 2
+        cells = [c for c in cells if c.phase in args.phases]
+    for cell in cells:
+        level_rank(cell.budget)
+    recorded = recorded_specs(args.preset, cells)
+    left = [c for c in cells if c.spec() not in recorded]
+    if args.list:
+        print("\n".join(c.spec() for c in left))
+        return 0
+    past = past_cell_hours(PAST_RECORDS)
+    table = plan_table(cells, past, recorded)
+    print(table.to_string(index=False, float_format=lambda v: f"{v:.1f}"))
+    total = float(table["hours_left"].sum())
+    print(f"{len(left)} of {len(cells)} cells left, about {total:.0f} cell-hours on 2 cores")
+    if not args.run:
+        return 0
+    from experiments.record import run_queue
+
+    failed = run_queue(
+        [c.queue_cell() for c in left], args.preset, args.study, args.set, revision=args.revision
+    )
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,79 @@
+"""The study's queue: every cell once, every level one its planner defines, phases in order."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from experiments.study_plan import (
+    OWN_LEVELS,
+    StudyCell,
+    estimate_hours,
+    plan_table,
+    study_cells,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_the_study_has_each_cell_once_in_phase_order():
+    cells = study_cells()
+    specs = [c.spec() for c in cells]
+    assert len(specs) == len(set(specs)) == 206
+    assert [c.phase for c in cells] == sorted(c.phase for c in cells)
+    # seed 0 of the tomb's and church's own-knob fronts first: 20 levels a scene
+    assert sum(c.phase == 1 for c in cells) == 2 * sum(len(v) for v in OWN_LEVELS.values()) == 40
+    # every planner on the GSD axis at its default knob; 3 cm is the own-knob front's default cell
+    gsd = [c for c in cells if c.phase == 2]
+    assert {(c.budget, c.gsd_m) for c in gsd} == {("default", 0.045), ("default", 0.02)}
+    assert len(gsd) == 2 * 5 * 2
+    assert {c.seed for c in cells if c.phase == 3} == {1, 2}
+    assert [c.spec() for c in cells if c.phase == 6] == ["tomb/yan/0/highest/0.03"]
+    plant = [c for c in cells if c.scene == "powerplant"]
+    assert len(plant) == 5 and all(c.overrides == ("exploration=lawnmower_orbit",) for c in plant)
+
+
+def test_every_study_level_is_one_its_planner_defines():
+    from hydra import compose, initialize_config_dir
+
+    from pipeline.settings import planner_setup
+
+    with initialize_config_dir(config_dir=os.fspath(ROOT / "conf"), version_base=None):
+        for planner, levels in OWN_LEVELS.items():
+            values = []
+            for level in levels:
+                _, record = planner_setup(
+                    compose("config", overrides=[f"planner={planner}", f"budget={level}"])
+                )
+                values.append(record.get("budget_value"))
+            assert len(values) == len(set(map(str, values))), planner
+
+
+def test_cell_hours_come_from_the_most_similar_earlier_cell():
+    past = pd.DataFrame(
+        [
+            ("tomb", "yan", "default", 2.0),
+            ("tomb", "yan", "low", 0.5),
+            ("church", "yan", "mid", 1.0),
+        ],
+        columns=["scene", "planner", "budget", "hours"],
+    )
+    assert estimate_hours(StudyCell(1, "tomb", "yan", 0, "low"), past) == 0.5
+    assert estimate_hours(StudyCell(1, "tomb", "yan", 0, "mid"), past) == 2.0  # its default's
+    assert estimate_hours(StudyCell(1, "cathedral", "yan", 0, "mid"), past) == 1.0  # the planner's level
+    assert estimate_hours(StudyCell(1, "school", "ours", 0), past) == pytest.approx(0.75)
+    cells = [
+        StudyCell(1, "tomb", "yan", 0, "low"),
+        StudyCell(1, "tomb", "yan", 1, "low"),
+        StudyCell(2, "tomb", "yan", 0),
+    ]
+    table = plan_table(cells, past, recorded={"tomb/yan/0/low/0.03"})
+    assert table.to_dict("list") == {
+        "phase": [1, 2],
+        "cells": [2, 1],
+        "recorded": [1, 0],
+        "hours_left": [0.5, 2.0],
+    }
