@@ -10,11 +10,13 @@ decimated and noised ground truth instead, for planner work without a reconstruc
 
 from __future__ import annotations
 
+import hashlib
 import logging
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import trimesh
 
 from pipeline.cache import cache_key, cached_entry
@@ -166,4 +168,17 @@ def proxy_stage(scene: Scene, intrinsics: Intrinsics, inputs: ProxyInputs) -> tu
         raise ValueError(f"reconstruct.proxy.source must be one of {PROXY_SOURCES}, got {source!r}")
     entry, record = build_exploration_proxy(scene, intrinsics, inputs)
     fields = {f"proxy_{k}": v for k, v in record.items() if isinstance(v, int | float | str | bool)}
-    return load_proxy(entry), {**fields, "proxy_source": "reconstruction"}
+    proxy = load_proxy(entry)
+    # Cells that share this digest planned on the same proxy: a proxy rebuilt on another machine can
+    # differ in a few faces (its fusion is not bit-reproducible across machines), and so can a plan.
+    fields["proxy_fingerprint"] = mesh_fingerprint(proxy)
+    return proxy, {**fields, "proxy_source": "reconstruction"}
+
+
+def mesh_fingerprint(mesh: trimesh.Trimesh) -> str:
+    """Hex digest of a mesh's vertices and faces (what a planner plans on)."""
+    digest = hashlib.blake2b(digest_size=8)
+    for array in (mesh.vertices, mesh.faces):
+        digest.update(repr(array.shape).encode())
+        digest.update(np.ascontiguousarray(array).tobytes())
+    return digest.hexdigest()

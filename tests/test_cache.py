@@ -170,3 +170,18 @@ def test_two_sweeps_on_one_cache_finish_with_the_results_of_one_alone(tmp_path):
     # Every texture both processes generated at once is whole: the same bytes as the lone run's.
     for texture in (tmp_path / "alone" / "textures").glob("*.png"):
         assert (shared / "textures" / texture.name).read_bytes() == texture.read_bytes(), texture.name
+
+
+def test_a_proxy_fingerprint_follows_its_vertices_and_faces():
+    import trimesh
+
+    from pipeline.proxy import mesh_fingerprint
+
+    box = trimesh.creation.box()
+    same = trimesh.Trimesh(box.vertices.copy(), box.faces.copy(), process=False)
+    assert mesh_fingerprint(box) == mesh_fingerprint(same) and len(mesh_fingerprint(box)) == 16
+    moved = same.copy()
+    moved.vertices[0, 2] += 1e-9  # one coordinate one nanometre off: another proxy
+    assert mesh_fingerprint(moved) != mesh_fingerprint(box)
+    flipped = trimesh.Trimesh(box.vertices.copy(), box.faces[:, ::-1].copy(), process=False)
+    assert mesh_fingerprint(flipped) != mesh_fingerprint(box)

@@ -108,6 +108,8 @@ def test_proxy_is_built_once_per_scene(smoke_sweep):
     assert not any({"proxy_cached", "proxy_proxy_cached"} & r.keys() for r in records)
     assert len({r["proxy_entry"] for r in records}) == 1
     assert len(list((cache_dir / "exploration").glob("*/COMPLETE.json"))) == 1
+    # every planner planned on the same proxy, and the record says so
+    assert len({r["proxy_fingerprint"] for r in records}) == 1
 
 
 def test_tables_from_the_sweep(smoke_sweep, tmp_path):
