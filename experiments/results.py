@@ -114,6 +114,38 @@ def _revision_lines(runs: pd.DataFrame) -> tuple[str, list[str]]:
     return newest[:7], lines
 
 
+def study_cost(runs: pd.DataFrame) -> list[str]:
+    """The README's cost lines: cell-hours per scene and planner, wall (CPU), summed over the
+    recorded cells' ``cell_wall_time_s`` (``cell_cpu_time_s``); none when no cell recorded them."""
+    if "cell_wall_time_s" not in runs or not runs["cell_wall_time_s"].notna().any():
+        return []
+    hours = runs.assign(
+        wall=pd.to_numeric(runs["cell_wall_time_s"], errors="coerce") / 3600.0,
+        cpu=pd.to_numeric(runs.get("cell_cpu_time_s", pd.Series(index=runs.index)), errors="coerce") / 3600.0,
+    )
+    scenes = list(dict.fromkeys(hours["scene"]))
+    planners = sorted(hours["planner"].unique(), key=method_sort_key)
+    cells = hours.groupby(["planner", "scene"])[["wall", "cpu"]].sum(min_count=1)
+
+    def cell(planner, scene) -> str:
+        if (planner, scene) not in cells.index:
+            return "–"
+        wall, cpu = cells.loc[(planner, scene)]
+        return "–" if pd.isna(wall) else f"{wall:.1f}" + ("" if pd.isna(cpu) else f" ({cpu:.1f})")
+
+    total_wall, total_cpu = hours["wall"].sum(), hours["cpu"].sum(min_count=1)
+    cpu_text = "" if pd.isna(total_cpu) else f" ({total_cpu:.1f} h CPU)"
+    return [
+        f"**Cost.** {total_wall:.1f} cell-hours of wall time{cpu_text}, per scene and planner (CPU hours"
+        " in brackets where recorded):",
+        "",
+        "| planner | " + " | ".join(scene_name(sc) for sc in scenes) + " |",
+        "| :-- | " + " | ".join("--:" for _ in scenes) + " |",
+        *(f"| {p} | " + " | ".join(cell(p, sc) for sc in scenes) + " |" for p in planners),
+        "",
+    ]
+
+
 def study_readme(study: str, runs: pd.DataFrame) -> str:
     """The study folder's README: cells, code, machines, how to run and regenerate."""
     ok = runs[runs["status"] == "ok"]
@@ -140,6 +172,7 @@ def study_readme(study: str, runs: pd.DataFrame) -> str:
         *(line for text in between for line in (text, "")),
         f"**Machines.** {_machines(runs)}.",
         "",
+        *study_cost(runs),
         "**Files.** `tables/tables.md` (Tables I and II at the default budget), `fronts.md` and",
         "`fronts_images.png` / `fronts_flight_time.png` (quality per image over every budget),",
         "`headline.md` (the top-level README's table, per budget), `cells.csv` (every cell's metrics.json).",

@@ -119,3 +119,22 @@ def test_revision_lineage_names_the_newest_revision_and_the_files_it_changes(tmp
     side = commit("planner/c.py", "z = 1\n")
     assert revision_lineage([fix, side], repo=repo) is None
     assert revision_lineage([base, "0" * 40], repo=repo) is None  # a commit the repository lacks
+
+
+def test_the_study_cost_sums_each_planners_cell_hours_per_scene():
+    import pandas as pd
+
+    from experiments.results import study_cost
+
+    runs = pd.DataFrame(
+        {
+            "scene": ["tomb", "tomb", "church", "tomb"],
+            "planner": ["ours", "ours", "ours", "yan"],
+            "cell_wall_time_s": [1800.0, 3600.0, 900.0, 7200.0],
+            "cell_cpu_time_s": [3600.0, 7200.0, 1800.0, float("nan")],
+        }
+    )
+    lines = study_cost(runs)
+    assert lines[0].startswith("**Cost.** 3.8 cell-hours of wall time (3.5 h CPU)")
+    assert lines[4:6] == ["| yan | 2.0 | – |", "| ours | 1.5 (3.0) | 0.2 (0.5) |"]
+    assert study_cost(runs.drop(columns="cell_wall_time_s")) == []
