@@ -17,10 +17,11 @@ The phases, each a complete answer before the next starts:
 3. seeds 1 and 2 of phases 1 and 2;
 4. the cathedral's own-knob fronts (low, default, high), seed 0;
 5. the shared meshes (school, power plant): every planner at its default, seed 0;
-6. Yan at the seed paper's scale (3000+ images), tomb, seed 0.
-
-The noise floor (the same cell three times, non-deterministic) has its own command,
-``uavplan-study noise-floor``.
+6. Yan at the seed paper's scale (3000+ images), tomb, seed 0;
+7. the noise floor: ours' and Smith's default church cells three times each from nothing (each
+   repeat its own stage cache, so its own exploration and proxy; ``reconstruct.deterministic=false``),
+   recorded under ``results/cells/<--preset>_noise/rep<k>/`` for ``uavplan-study noise-floor
+   --summarise``, whose floor the tables' and fronts' tie rule reads.
 """
 
 from __future__ import annotations
@@ -59,6 +60,9 @@ MESH_SCENES = ("school", "powerplant")
 SEEDS = (0, 1, 2)
 # Overrides a scene needs in every cell (conf/scene/powerplant.yaml says why).
 SCENE_OVERRIDES = {"powerplant": ("exploration=lawnmower_orbit",)}
+# The noise floor's cells (the issue asks for ours and one baseline on the church) and repeats.
+NOISE_CELLS = (("church", "ours"), ("church", "smith"))
+NOISE_REPEATS = 3
 # Where the cell-hours of a cell not run before are guessed from: the records of earlier studies.
 PAST_RECORDS = ROOT / "results" / "cells"
 UNKNOWN_CELL_H = 0.75  # a cell no earlier record resembles (a mesh scene, a new level)
@@ -75,10 +79,16 @@ class StudyCell:
     budget: str = DEFAULT_LEVEL
     gsd_m: float = SURVEY_GSD_M
     overrides: tuple[str, ...] = field(default_factory=tuple)
+    repeat: int | None = None  # a noise-floor repeat: its own records and stage cache
 
     def spec(self) -> str:
-        """The record queue's ``scene/planner/seed/budget/gsd`` form."""
-        return f"{self.scene}/{self.planner}/{self.seed}/{self.budget}/{self.gsd_m:g}"
+        """The record queue's ``scene/planner/seed/budget/gsd`` form (``@rep<k>`` for a repeat)."""
+        tail = "" if self.repeat is None else f"@rep{self.repeat}"
+        return f"{self.scene}/{self.planner}/{self.seed}/{self.budget}/{self.gsd_m:g}{tail}"
+
+    def preset(self, study_preset: str) -> str:
+        """The record folder under results/cells/ (a repeat's: ``<preset>_noise/rep<k>``)."""
+        return study_preset if self.repeat is None else f"{study_preset}_noise/rep{self.repeat}"
 
     def queue_cell(self) -> tuple:
         return (self.scene, self.planner, self.seed, self.budget, self.gsd_m, self.overrides)
@@ -115,6 +125,9 @@ def study_cells() -> list[StudyCell]:
         for planner in PLANNERS:
             add(5, scene, planner, 0)
     add(6, "tomb", "yan", 0, "highest")
+    for repeat in range(NOISE_REPEATS):
+        for scene, planner in NOISE_CELLS:
+            cells.append(StudyCell(7, scene, planner, 0, repeat=repeat))
     return cells
 
 
@@ -166,14 +179,39 @@ def plan_table(cells: Sequence[StudyCell], past: pd.DataFrame, recorded: set[str
 
 
 def recorded_specs(preset: str, cells: Sequence[StudyCell]) -> set[str]:
-    """The cells of ``cells`` that have a record under ``results/cells/<preset>``."""
+    """The cells of ``cells`` that have a record under ``results/cells/<preset>`` (a repeat's under its
+    own folder)."""
     from experiments.record import record_dir
 
     return {
         c.spec()
         for c in cells
-        if (record_dir(preset, c.scene, c.planner, c.seed, c.budget, c.gsd_m) / "metrics.json").is_file()
+        if (
+            record_dir(c.preset(preset), c.scene, c.planner, c.seed, c.budget, c.gsd_m) / "metrics.json"
+        ).is_file()
     }
+
+
+def run_cells(
+    cells: Sequence[StudyCell], preset: str, study: Path, overrides: Sequence[str], revision: str
+) -> int:
+    """Run ``cells`` through the record queue, each group of one record folder in order; a repeat in
+    non-deterministic mode with a stage cache of its own. Returns the number of failed cells."""
+    from experiments.record import run_queue
+
+    failed = 0
+    groups: dict[str, list[StudyCell]] = {}
+    for cell in cells:
+        groups.setdefault(cell.preset(preset), []).append(cell)
+    for folder, group in groups.items():
+        repeat = group[0].repeat
+        extra = list(overrides)
+        runs = Path(study)
+        if repeat is not None:
+            runs = runs.parent / f"{runs.name}_noise" / f"rep{repeat}"
+            extra += ["reconstruct.deterministic=false", f"cache_dir={(runs / 'cache').resolve()}"]
+        failed += run_queue([c.queue_cell() for c in group], folder, runs, extra, revision=revision)
+    return failed
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -190,7 +228,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.phases:
         unknown = sorted(set(args.phases) - {c.phase for c in cells})
         if unknown:
-            print(f"error: --phases: no phase {unknown} (phases 1-6)", file=sys.stderr)
+            print(f"error: --phases: no phase {unknown} (phases 1-7)", file=sys.stderr)
             return 2
         cells = [c for c in cells if c.phase in args.phases]
     for cell in cells:
@@ -207,11 +245,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"{len(left)} of {len(cells)} cells left, about {total:.0f} cell-hours on 2 cores")
     if not args.run:
         return 0
-    from experiments.record import run_queue
-
-    failed = run_queue(
-        [c.queue_cell() for c in left], args.preset, args.study, args.set, revision=args.revision
-    )
+    failed = run_cells(left, args.preset, args.study, args.set, args.revision)
     return 1 if failed else 0
 
 

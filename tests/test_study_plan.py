@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_the_study_has_each_cell_once_in_phase_order():
     cells = study_cells()
     specs = [c.spec() for c in cells]
-    assert len(specs) == len(set(specs)) == 206
+    assert len(specs) == len(set(specs)) == 212
     assert [c.phase for c in cells] == sorted(c.phase for c in cells)
     # seed 0 of the tomb's and church's own-knob fronts first: 20 levels a scene
     assert sum(c.phase == 1 for c in cells) == 2 * sum(len(v) for v in OWN_LEVELS.values()) == 40
@@ -32,6 +32,13 @@ def test_the_study_has_each_cell_once_in_phase_order():
     assert len(gsd) == 2 * 5 * 2
     assert {c.seed for c in cells if c.phase == 3} == {1, 2}
     assert [c.spec() for c in cells if c.phase == 6] == ["tomb/yan/0/highest/0.03"]
+    noise = [c for c in cells if c.phase == 7]  # ours and Smith on the church, three repeats each
+    assert [c.spec() for c in noise[:2]] == [
+        "church/ours/0/default/0.03@rep0",
+        "church/smith/0/default/0.03@rep0",
+    ]
+    assert {c.preset("settled") for c in noise} == {f"settled_noise/rep{k}" for k in range(3)}
+    assert cells[0].preset("settled") == "settled"
     plant = [c for c in cells if c.scene == "powerplant"]
     assert len(plant) == 5 and all(c.overrides == ("exploration=lawnmower_orbit",) for c in plant)
 
@@ -77,3 +84,19 @@ def test_cell_hours_come_from_the_most_similar_earlier_cell():
         "recorded": [1, 0],
         "hours_left": [0.5, 2.0],
     }
+
+
+def test_a_noise_repeat_runs_from_nothing_in_its_own_records(monkeypatch, tmp_path):
+    import experiments.record
+    from experiments.study_plan import run_cells
+
+    calls = []
+    monkeypatch.setattr(experiments.record, "run_queue", lambda *a, **k: calls.append((a, k)) or 0)
+    cells = [StudyCell(1, "tomb", "ours", 0), StudyCell(7, "church", "ours", 0, repeat=1)]
+    assert run_cells(cells, "settled", tmp_path / "settled", ["a=1"], "abc1234") == 0
+    (first, _), (second, kwargs) = calls
+    assert first[1:4] == ("settled", tmp_path / "settled", ["a=1"])
+    assert second[1] == "settled_noise/rep1" and second[2] == tmp_path / "settled_noise" / "rep1"
+    cache = (tmp_path / "settled_noise" / "rep1" / "cache").resolve()
+    assert second[3] == ["a=1", "reconstruct.deterministic=false", f"cache_dir={cache}"]
+    assert kwargs == {"revision": "abc1234"}
