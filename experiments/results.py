@@ -189,6 +189,20 @@ def study_readme(study: str, runs: pd.DataFrame) -> str:
     return "\n".join(lines)
 
 
+def study_noise_floor(noise_dir: Path) -> dict[str, float] | None:
+    """The noise floor of a study's repeats (``results/cells/<study>_noise/rep<k>/``, the study plan's
+    phase 7; ``experiments.noise_floor``), or None while no cell has two recorded repeats."""
+    from experiments.noise_floor import load_repeats, noise_floor, summarise_repeats
+
+    if not Path(noise_dir).is_dir():
+        return None
+    try:
+        summary = summarise_repeats(load_repeats(noise_dir))
+    except RunDirectoryError:
+        return None
+    return noise_floor(summary) or None
+
+
 def write_study(study: str, cells_root: Path = CELLS, out_root: Path = ROOT / "results") -> list[Path]:
     """Regenerate ``out_root/<study>/`` from ``cells_root/<study>/``; return the files written.
 
@@ -199,6 +213,7 @@ def write_study(study: str, cells_root: Path = CELLS, out_root: Path = ROOT / "r
         RunDirectoryError: the study folder is missing or holds no record.
     """
     runs = study_runs(Path(cells_root) / study)
+    floor = study_noise_floor(Path(cells_root) / f"{study}_noise")
     out = Path(out_root) / study
     out.parent.mkdir(parents=True, exist_ok=True)
     build = Path(tempfile.mkdtemp(prefix=f".{study}.", dir=out.parent))
@@ -207,9 +222,11 @@ def write_study(study: str, cells_root: Path = CELLS, out_root: Path = ROOT / "r
         own_knob = on_axis(runs, "budget").drop(columns="gsd_m")  # Tables I and II: the survey's GSD
         at_default = own_knob[own_knob["budget"] == DEFAULT_LEVEL]
         if len(at_default):
-            written += write_tables(tables_from_runs(at_default.reset_index(drop=True)), build / "tables")
+            written += write_tables(
+                tables_from_runs(at_default.reset_index(drop=True), floor), build / "tables"
+            )
         if (runs["status"] == "ok").any():
-            written += write_fronts(runs, build)
+            written += write_fronts(runs, build, floor=floor)
         written.append(write_text_atomic(build / "cells.csv", runs.to_csv(index=False, lineterminator="\n")))
         written.append(write_text_atomic(build / "README.md", study_readme(study, runs)))
         os.chmod(build, 0o755)

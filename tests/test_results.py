@@ -138,3 +138,18 @@ def test_the_study_cost_sums_each_planners_cell_hours_per_scene():
     assert lines[0].startswith("**Cost.** 3.8 cell-hours of wall time (3.5 h CPU)")
     assert lines[4:6] == ["| yan | 2.0 | – |", "| ours | 1.5 (3.0) | 0.2 (0.5) |"]
     assert study_cost(runs.drop(columns="cell_wall_time_s")) == []
+
+
+def test_a_studys_noise_floor_comes_from_its_repeats(tmp_path):
+    from experiments.results import study_noise_floor
+    from tests.experiments_fixtures import write_run
+
+    noise = tmp_path / "settled_noise"
+    assert study_noise_floor(noise) is None  # no repeats yet: no floor, exact ties only
+    for repeat, (comp, acc) in enumerate([(80.0, 0.020), (77.5, 0.023), (79.0, 0.021)]):
+        write_run(noise / f"rep{repeat}", "church", "ours", 0, comp_050=comp, acc90_m=acc)
+    write_run(noise / "rep0", "church", "smith", 0, comp_050=70.0, acc90_m=0.03)
+    write_run(noise / "rep1", "church", "smith", 0, comp_050=73.0, acc90_m=0.03)
+    floor = study_noise_floor(noise)
+    assert floor["comp_050"] == pytest.approx(3.0)  # Smith's range; ours' is 2.5
+    assert floor["acc90_m"] == pytest.approx(0.003)
