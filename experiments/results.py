@@ -34,7 +34,7 @@ from pathlib import Path
 import pandas as pd
 
 from evaluate.record import git
-from experiments.fronts import on_axis, write_fronts
+from experiments.fronts import DEFAULT_AT_IMAGES, DEFAULT_TARGETS_PCT, on_axis, write_fronts
 from experiments.runs import RunDirectoryError, load_runs, method_sort_key, runs_frame, scene_name
 from experiments.tables import code_provenance, tables_from_runs, write_tables
 from planner.budget import DEFAULT_LEVEL, level_rank
@@ -203,8 +203,15 @@ def study_noise_floor(noise_dir: Path) -> dict[str, float] | None:
     return noise_floor(summary) or None
 
 
-def write_study(study: str, cells_root: Path = CELLS, out_root: Path = ROOT / "results") -> list[Path]:
-    """Regenerate ``out_root/<study>/`` from ``cells_root/<study>/``; return the files written.
+def write_study(
+    study: str,
+    cells_root: Path = CELLS,
+    out_root: Path = ROOT / "results",
+    targets_pct: Sequence[float] = DEFAULT_TARGETS_PCT,
+    at_images: Sequence[int] = DEFAULT_AT_IMAGES,
+) -> list[Path]:
+    """Regenerate ``out_root/<study>/`` from ``cells_root/<study>/``; return the files written. The
+    fronts ask for the images to reach each of ``targets_pct`` and compare at each of ``at_images``.
 
     The folder is built beside its place and swapped in whole, so it never mixes files of two
     generations (a table a study no longer has is gone, not left stale).
@@ -226,7 +233,7 @@ def write_study(study: str, cells_root: Path = CELLS, out_root: Path = ROOT / "r
                 tables_from_runs(at_default.reset_index(drop=True), floor), build / "tables"
             )
         if (runs["status"] == "ok").any():
-            written += write_fronts(runs, build, floor=floor)
+            written += write_fronts(runs, build, targets_pct, at_images, floor=floor)
         written.append(write_text_atomic(build / "cells.csv", runs.to_csv(index=False, lineterminator="\n")))
         written.append(write_text_atomic(build / "README.md", study_readme(study, runs)))
         os.chmod(build, 0o755)
@@ -268,9 +275,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--readme", type=Path, help="splice the (one) study's headline.md into this README's headline block"
     )
+    parser.add_argument(
+        "--targets", type=float, nargs="+", default=list(DEFAULT_TARGETS_PCT), help="completeness levels (%%)"
+    )
+    parser.add_argument(
+        "--at-images", type=int, nargs="+", default=list(DEFAULT_AT_IMAGES), help="image counts compared at"
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(message)s")
-    studies = args.studies or sorted(p.name for p in args.cells.iterdir() if p.is_dir())
+    # a study's noise repeats (<study>_noise) are its floor, not a study of their own
+    studies = args.studies or sorted(
+        p.name for p in args.cells.iterdir() if p.is_dir() and not p.name.endswith("_noise")
+    )
     if not studies:
         print(f"error: no study folder under {args.cells}", file=sys.stderr)
         return 2
@@ -289,7 +305,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         # A superseded study's results live under <out>/archive/ and are regenerated there.
         out = args.out / "archive" if (args.out / "archive" / study).is_dir() else args.out
         try:
-            written = write_study(study, args.cells, out)
+            written = write_study(study, args.cells, out, args.targets, args.at_images)
         except RunDirectoryError as exc:
             print(f"error: study {study}: {exc}", file=sys.stderr)
             return 2
