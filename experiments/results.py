@@ -36,6 +36,7 @@ import pandas as pd
 from evaluate.record import git
 from experiments.fronts import DEFAULT_AT_IMAGES, DEFAULT_TARGETS_PCT, on_axis, write_fronts
 from experiments.runs import RunDirectoryError, load_runs, method_sort_key, runs_frame, scene_name
+from experiments.study_plan import STUDY_PRESET
 from experiments.tables import code_provenance, tables_from_runs, write_tables
 from planner.budget import DEFAULT_LEVEL, level_rank
 from scene.io import write_text_atomic
@@ -186,6 +187,17 @@ def study_readme(study: str, runs: pd.DataFrame) -> str:
         "```",
         "",
     ]
+    if study == STUDY_PRESET:
+        lines += [
+            "The study plan's cells (`experiments/study_plan.py`), what is left and the one command that",
+            "runs it:",
+            "",
+            "```bash",
+            "python -m experiments.study_plan",
+            f"python -m experiments.study_plan --run --revision {revision}",
+            "```",
+            "",
+        ]
     return "\n".join(lines)
 
 

@@ -53,6 +53,7 @@ OWN_LEVELS = {
     "ours": ("lowest", "low", "default", "high"),
     "ours_plus": ("lowest", "low", "default", "high"),
 }
+STUDY_PRESET = "settled"  # its records: results/cells/settled/; its run directories: study/settled/
 SURVEY_GSD_M = 0.03  # conf/config.yaml survey.target_gsd_m: the own-knob axis flies at it
 GSD_AXIS_M = (0.045, 0.02)  # the GSD axis besides the survey's, coarsest first
 FRONT_SCENES = ("tomb", "church")
@@ -217,8 +218,8 @@ def run_cells(
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="uavplan-study study-plan", description=__doc__.splitlines()[0])
     parser.add_argument("--phases", type=int, nargs="+", help="only these phases (default: all)")
-    parser.add_argument("--preset", default="settled", help="record folder under results/cells/")
-    parser.add_argument("--study", type=Path, default=Path("study") / "settled", help="run directories")
+    parser.add_argument("--preset", default=STUDY_PRESET, help="record folder under results/cells/")
+    parser.add_argument("--study", type=Path, default=Path("study") / STUDY_PRESET, help="run directories")
     parser.add_argument("--list", action="store_true", help="print the cells left, one per line")
     parser.add_argument("--run", action="store_true", help="run the cells left through the record queue")
     parser.add_argument("--revision", default="HEAD", help="the commit every cell runs (with --run)")
