@@ -326,12 +326,13 @@ def seed_claims(
 
     Columns: scene, question, ``best`` (the planner best on every seed and alone there, else
     ``tie: A, B`` over every planner best or tied on some seed, ``A on 1 of 3 seeds`` when some seed's
-    fronts do not answer, ``–`` when none does),
+    fronts do not answer or some planner has no cell of that seed, ``–`` when none does),
     ``seed_<k>`` (that seed's best, ``A = B`` for a tie within the floor)."""
     rows = []
     points = front_points(runs, axis=axis, by_seed=True)
     seeds = sorted(points["seed"].unique()) if not points.empty else []
     for scene, at_scene in points.groupby("scene", sort=False):
+        planners = set(at_scene["planner"])
         for question in questions:
             per_seed = {}
             for seed in seeds:
@@ -339,7 +340,8 @@ def seed_claims(
                     planner: front
                     for planner, front in at_scene[at_scene["seed"] == seed].groupby("planner", sort=False)
                 }
-                per_seed[seed] = best_planners(fronts, question, floor) if fronts else None
+                # a seed some planner of the scene has no cell of compares nothing: n/a
+                per_seed[seed] = best_planners(fronts, question, floor) if set(fronts) == planners else None
             answered = [b for b in per_seed.values() if b]
             tied = sorted({p for b in answered for p in b}, key=method_sort_key)
             names = ", ".join(method_name(p) for p in tied)
