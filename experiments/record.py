@@ -214,15 +214,13 @@ def run_queue(
     default_gsd = None
     if any(len(cell) < 5 or cell[4] is None for cell in cells):
         default_gsd = configured_gsd_m([o for o in overrides if not o.startswith("hydra")])
-    # (scene, planner, seed, budget, gsd_m, overrides of this cell alone)
-    cells = [
-        (
-            *cell[:4],
-            default_gsd if len(cell) < 5 or cell[4] is None else cell[4],
-            tuple(cell[5:6] and cell[5]),
-        )
-        for cell in cells
-    ]
+
+    def complete(cell: tuple) -> tuple:
+        """(scene, planner, seed, budget, gsd_m, overrides of this cell alone)."""
+        gsd_m = cell[4] if len(cell) > 4 and cell[4] is not None else default_gsd
+        return (*cell[:4], gsd_m, tuple(cell[5]) if len(cell) > 5 else ())
+
+    cells = [complete(cell) for cell in cells]
     if commit:
         records = [
             os.path.relpath(record_dir(preset, *cell[:5]) / name, ROOT)
