@@ -73,7 +73,12 @@ def depth_error_row(depth: np.ndarray, gt: np.ndarray, walls: np.ndarray) -> dic
     has_gt = np.isfinite(gt)
     both = has_gt & np.isfinite(depth)
     err = np.abs(depth - gt)
-    row = {"gt_pixels": int(has_gt.sum()), "valid_share": float(both.sum() / max(has_gt.sum(), 1))}
+    gt_walls = has_gt & walls
+    row = {
+        "gt_pixels": int(has_gt.sum()),
+        "valid_share": float(both.sum() / max(has_gt.sum(), 1)),
+        "valid_share_walls": float((both & walls).sum() / max(gt_walls.sum(), 1)),
+    }
     for label, mask in (("all", both), ("walls", both & walls)):
         e = err[mask]
         row[f"n_{label}"] = int(len(e))
@@ -81,6 +86,25 @@ def depth_error_row(depth: np.ndarray, gt: np.ndarray, walls: np.ndarray) -> dic
         row[f"err90_{label}_m"] = float(np.percentile(e, 90)) if len(e) else np.nan
         row[f"over5cm_{label}"] = float(np.mean(e > ERROR_THRESHOLD_M)) if len(e) else np.nan
     return row
+
+
+def seen_by(points: np.ndarray, has_gt: np.ndarray, src: View, src_gt: np.ndarray, rel_tol: float = 0.01):
+    """Reference pixels (H, W) bool whose ground-truth point ``points`` lies in ``src``'s image and
+    is the surface ``src`` sees there (its ground-truth depth ``src_gt`` agrees within ``rel_tol``):
+    the most a pair with ``src`` could measure."""
+    cam = (points[has_gt] - src.center) @ src.rotation.T
+    seen = np.zeros(has_gt.shape, bool)
+    z = cam[:, 2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        pix = cam @ src.K.T
+        col = np.rint(pix[:, 0] / pix[:, 2]).astype(np.int64, copy=False)
+        row = np.rint(pix[:, 1] / pix[:, 2]).astype(np.int64, copy=False)
+    inside = (z > 0) & (col >= 0) & (col < src.width) & (row >= 0) & (row < src.height)
+    visible = np.zeros(len(z), bool)
+    depth_there = src_gt[row[inside], col[inside]]
+    visible[inside] = np.abs(depth_there - z[inside]) <= rel_tol * z[inside]
+    seen[has_gt] = visible
+    return seen
 
 
 def triangulation_angle_deg(points: np.ndarray, ref: View, src: View, mask: np.ndarray) -> float:
@@ -94,11 +118,25 @@ def triangulation_angle_deg(points: np.ndarray, ref: View, src: View, mask: np.n
     return float(np.degrees(np.median(np.arccos(np.clip(cos, -1.0, 1.0)))))
 
 
-def analyse_run(run_dir: Path, n_views: int | None, workdir: Path) -> pd.DataFrame:
-    """One row per (reference view, partner) and per reference view's combined map."""
+def analyse_run(
+    run_dir: Path, n_views: int | None, workdir: Path, dense_overrides: Sequence[str] = ()
+) -> pd.DataFrame:
+    """One row per (reference view, partner) and per reference view's combined map.
+
+    ``dense_overrides``: ``key=value`` dotlist on the run's ``reconstruct.dense`` settings (the
+    same flight and SfM under another matcher setting, for an ablation)."""
+    from omegaconf import OmegaConf
+
     cfg = read_run_config(run_dir)
     if cfg is None:
         raise RunDirectoryError(f"{run_dir}: no .hydra/config.yaml (not a run directory)")
+    if dense_overrides:
+        try:
+            cfg.reconstruct.dense = OmegaConf.merge(
+                cfg.reconstruct.dense, OmegaConf.from_dotlist(list(dense_overrides))
+            )
+        except Exception as exc:  # noqa: BLE001 - a malformed override is reported as such
+            raise RunDirectoryError(f"--dense {' '.join(dense_overrides)}: {exc}") from exc
     for needed in (SPARSE_DIR, IMAGES_DIR, GT_REGION_FILE):
         if not (run_dir / needed).exists():
             raise RunDirectoryError(f"{run_dir}: missing {needed}")
@@ -128,9 +166,13 @@ def analyse_run(run_dir: Path, n_views: int | None, workdir: Path) -> pd.DataFra
             "view": name,
             "gt_depth50_m": float(np.nanmedian(gt)) if has_gt.any() else np.nan,
         }
+        gt_walls = has_gt & walls
         depths, measured = [], []
+        seen_any = np.zeros(has_gt.shape, bool)
         for src_name in partners[name]:
             src = views[src_name]
+            seen = seen_by(points, has_gt, src, ground_truth_depth(scene, src)[0])
+            seen_any |= seen
             src_gray = cv2.imread(str(workspace / "images" / src_name), cv2.IMREAD_GRAYSCALE)
             depth = pair_depth(ref, src, ref_gray, src_gray, ref_points, dense_cfg)
             row = base | {
@@ -138,6 +180,8 @@ def analyse_run(run_dir: Path, n_views: int | None, workdir: Path) -> pd.DataFra
                 "baseline_m": float(np.linalg.norm(src.center - ref.center)),
                 "angle_deg": triangulation_angle_deg(points, ref, src, has_gt),
                 "axes_deg": float(np.degrees(np.arccos(np.clip(ref.forward @ src.forward, -1, 1)))),
+                "seen_share": float(seen.sum() / max(has_gt.sum(), 1)),
+                "seen_share_walls": float((seen & walls).sum() / max(gt_walls.sum(), 1)),
             }
             if depth is None:
                 rows.append(row | {"valid_share": 0.0})
@@ -154,7 +198,12 @@ def analyse_run(run_dir: Path, n_views: int | None, workdir: Path) -> pd.DataFra
             )
             rows.append(
                 base
-                | {"partner": "combined", "n_partners": len(depths)}
+                | {
+                    "partner": "combined",
+                    "n_partners": len(depths),
+                    "seen_share": float(seen_any.sum() / max(has_gt.sum(), 1)),
+                    "seen_share_walls": float((seen_any & walls).sum() / max(gt_walls.sum(), 1)),
+                }
                 | depth_error_row(combined, gt, walls)
             )
         log.info("%s: view %d / %d (%s)", run_dir, i + 1, len(names), name)
@@ -170,13 +219,14 @@ def summarise(pairs: pd.DataFrame) -> str:
         lines += [
             f"## {run}",
             "",
-            "| angle (deg) | pairs | median depth (m) | valid | err50 walls (cm) | err90 walls (cm) "
-            "| > 5 cm walls | err90 all (cm) |",
-            "| :-- | --: | --: | --: | --: | --: | --: | --: |",
+            "| angle (deg) | pairs | median depth (m) | valid | walls seen | walls valid | err50 walls (cm) "
+            "| err90 walls (cm) | > 5 cm walls | err90 all (cm) |",
+            "| :-- | --: | --: | --: | --: | --: | --: | --: | --: | --: |",
         ]
         for interval, g in group.groupby("angle_bin", observed=True):
             lines.append(
                 f"| {interval} | {len(g)} | {g['gt_depth50_m'].median():.1f} | {g['valid_share'].mean():.2f} "
+                f"| {g['seen_share_walls'].mean():.2f} | {g['valid_share_walls'].mean():.2f} "
                 f"| {100 * g['err50_walls_m'].median():.1f} | {100 * g['err90_walls_m'].median():.1f} "
                 f"| {100 * g['over5cm_walls'].median():.1f} % | {100 * g['err90_all_m'].median():.1f} |"
             )
@@ -185,14 +235,15 @@ def summarise(pairs: pd.DataFrame) -> str:
     lines += [
         "## Combined maps (what fusion reads)",
         "",
-        "| run | views | median depth (m) | valid | err50 walls (cm) | err90 walls (cm) | > 5 cm walls "
-        "| err90 all (cm) | median pair angle (deg) |",
-        "| :-- | --: | --: | --: | --: | --: | --: | --: | --: |",
+        "| run | views | median depth (m) | valid | walls seen | walls valid | err50 walls (cm) "
+        "| err90 walls (cm) | > 5 cm walls | err90 all (cm) | median pair angle (deg) |",
+        "| :-- | --: | --: | --: | --: | --: | --: | --: | --: | --: | --: |",
     ]
     for run, g in combined.groupby("run"):
         angle = single.loc[single["run"] == run, "angle_deg"].median()
         lines.append(
             f"| {run} | {len(g)} | {g['gt_depth50_m'].median():.1f} | {g['valid_share'].mean():.2f} "
+            f"| {g['seen_share_walls'].mean():.2f} | {g['valid_share_walls'].mean():.2f} "
             f"| {100 * g['err50_walls_m'].median():.1f} | {100 * g['err90_walls_m'].median():.1f} "
             f"| {100 * g['over5cm_walls'].median():.1f} % | {100 * g['err90_all_m'].median():.1f} "
             f"| {angle:.1f} |"
@@ -207,6 +258,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--views", type=int, default=60, help="reference views per run, evenly spread (0: all)"
     )
     parser.add_argument("--out", type=Path, required=True, help="folder for pairs.csv and summary.md")
+    parser.add_argument(
+        "--dense",
+        nargs="*",
+        default=[],
+        metavar="KEY=VALUE",
+        help="reconstruct.dense settings to change for every run (e.g. max_num_disparities=512)",
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.views < 0:
@@ -217,7 +275,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         for run in args.runs:
             workdir = Path(tempfile.mkdtemp(prefix="depth_errors_"))
             try:
-                frames.append(analyse_run(run, args.views or None, workdir))
+                frames.append(analyse_run(run, args.views or None, workdir, args.dense))
             finally:
                 shutil.rmtree(workdir, ignore_errors=True)
     except RunDirectoryError as exc:

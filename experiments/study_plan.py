@@ -193,6 +193,29 @@ def recorded_specs(preset: str, cells: Sequence[StudyCell]) -> set[str]:
     }
 
 
+def recorded_commits(preset: str, cells: Sequence[StudyCell]) -> dict[str, str]:
+    """The code commit (``metrics.json``'s ``code_commit``) of every recorded cell of ``cells``, by spec."""
+    import json
+
+    from experiments.record import record_dir
+
+    commits = {}
+    for c in cells:
+        path = record_dir(c.preset(preset), c.scene, c.planner, c.seed, c.budget, c.gsd_m) / "metrics.json"
+        if path.is_file():
+            commits[c.spec()] = str(json.loads(path.read_text()).get("code_commit") or "")
+    return commits
+
+
+def foreign_records(commits: dict[str, str], revision_sha: str) -> list[str]:
+    """The specs recorded at another commit than ``revision_sha`` (full or abbreviated)."""
+    return sorted(
+        spec
+        for spec, sha in commits.items()
+        if not (sha and (sha.startswith(revision_sha) or revision_sha.startswith(sha)))
+    )
+
+
 def run_cells(
     cells: Sequence[StudyCell], preset: str, study: Path, overrides: Sequence[str], revision: str
 ) -> int:
@@ -246,6 +269,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"{len(left)} of {len(cells)} cells left, about {total:.0f} cell-hours on 2 cores")
     if not args.run:
         return 0
+    # Every cell of the study comes from one revision: a record of another would sit in its tables.
+    import subprocess
+
+    found = subprocess.run(
+        ["git", "-C", str(ROOT), "rev-parse", "--verify", "--quiet", f"{args.revision}^{{commit}}"],
+        capture_output=True,
+        text=True,
+    )
+    if found.returncode != 0:
+        print(f"error: --revision {args.revision!r} names no commit", file=sys.stderr)
+        return 2
+    foreign = foreign_records(recorded_commits(args.preset, cells), found.stdout.strip())
+    if foreign:
+        print(
+            f"error: {len(foreign)} cell(s) of results/cells/{args.preset} were recorded at another revision "
+            f"than {args.revision} (first: {foreign[0]}); move them aside or run at their revision",
+            file=sys.stderr,
+        )
+        return 2
     failed = run_cells(left, args.preset, args.study, args.set, args.revision)
     return 1 if failed else 0
 

@@ -100,6 +100,8 @@ class DenseSettings:
     patch_match: PatchMatchSettings = setting()
     oracle: OracleSettings = setting()
     partner_weights: str = setting("equal", choices=("equal", "precision"))
+    partners_must_rectify: bool = setting(False)  # reconstruct.workspace.select_partners
+    max_rectified_area_ratio: float = setting(4.0, above=1)  # reconstruct.rectify
 
     def __post_init__(self) -> None:
         if not self.min_triangulation_angle_deg < self.max_triangulation_angle_deg:

@@ -36,6 +36,7 @@ from reconstruct.dense import FUSION_BYTES_PER_PX, dense_reconstruct, fusion_bud
 from reconstruct.errors import ReconstructionError
 from reconstruct.flight import CAMERAS_FILE, Flight, read_flight, simulate_gnss
 from reconstruct.proxy import poisson_proxy
+from reconstruct.rectify import DEFAULT_MAX_AREA_RATIO
 from reconstruct.sfm import run_sfm
 from reconstruct.sfm_settings import COLMAP_GLOBAL_BA_MAX_REFINEMENTS, COLMAP_LOCAL_BA
 from reconstruct.timing import stage_time
@@ -84,7 +85,22 @@ def _without(section: dict, keys, drop: bool) -> dict:
     return {k: v for k, v in section.items() if k not in keys} if drop else section
 
 
+# The proxy's own fusion keeps COLMAP's normal tolerance: spelled out when the scored flights' moved
+# to 30 deg, it fuses as every proxy did before, so it leaves their keys alone.
+PROXY_FORMER_NORMAL_ERROR_DEG = 10.0
+
+
+def _proxy_in_effect(proxy: dict) -> dict:
+    fusion = (proxy.get("dense") or {}).get("fusion")
+    if not isinstance(fusion, dict) or fusion.get("max_normal_error") != PROXY_FORMER_NORMAL_ERROR_DEG:
+        return proxy
+    fusion = {k: v for k, v in fusion.items() if k != "max_normal_error"}
+    return {**proxy, "dense": {**proxy["dense"], "fusion": fusion}}
+
+
 def _in_effect(section: str, value, fusion_bytes: float = 0.0):
+    if section == "proxy" and isinstance(value, dict):
+        return _proxy_in_effect(value)
     # The other mapper's settings cannot change a model: a new global-only setting must not move
     # the cache keys of incremental runs (their proxies stay valid). Nor can a fusion memory budget
     # the flight's fusion (``fusion_bytes``, bytes) stays within.
@@ -103,6 +119,10 @@ def _in_effect(section: str, value, fusion_bytes: float = 0.0):
         value = _without(value, ("oracle",), value.get("backend") != "oracle")
         value = _without(value, ("edge_margin_px",), not value.get("edge_margin_px"))
         value = _without(value, ("partner_weights",), value.get("partner_weights", "equal") == "equal")
+        rectify_keys = ("partners_must_rectify", "max_rectified_area_ratio")
+        ratio = value.get("max_rectified_area_ratio", DEFAULT_MAX_AREA_RATIO)
+        rectify_off = not value.get("partners_must_rectify") and ratio == DEFAULT_MAX_AREA_RATIO
+        value = _without(value, rectify_keys, rectify_off)
         gc_off = not (value.get("geometric_consistency") or {}).get("min_views")
         value = _without(value, ("geometric_consistency",), gc_off)
         return {**value, "fusion": fusion}

@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 import pycolmap
 
+from reconstruct.rectify import DEFAULT_MAX_AREA_RATIO, rectify_pair
 from scene.io import write_atomic, write_text_atomic
 
 log = logging.getLogger(__name__)
@@ -150,7 +151,10 @@ def select_partners(workspace: Path, views: Mapping[str, View], cfg: Mapping) ->
     triangulation angle at those points lies in [``min_triangulation_angle_deg``,
     ``max_triangulation_angle_deg``] (too small: poor depth resolution; too large: poor matching),
     and the baseline makes at least ``min_baseline_axis_angle_deg`` with both optical axes (the
-    epipoles stay far outside the images, so rectification does not blow up). Among those, the
+    epipoles stay far outside the images, so rectification does not blow up). With
+    ``partners_must_rectify`` the pair must also rectify onto a canvas of at most
+    ``max_rectified_area_ratio`` times the image (``reconstruct.rectify``), the test the matcher
+    applies: a pair it would drop gets no partner slot. Among those, the
     ``num_partners`` with the highest score are kept: shared points, scaled down linearly for
     angles below ``partner_ideal_angle_deg`` (a wider angle gives a finer depth resolution).
     """
@@ -164,6 +168,8 @@ def select_partners(workspace: Path, views: Mapping[str, View], cfg: Mapping) ->
     min_shared = int(cfg["min_shared_points"])
     num_partners = int(cfg["num_partners"])
     ideal = max(math.radians(float(cfg["partner_ideal_angle_deg"])), 1e-6)
+    must_rectify = bool(cfg.get("partners_must_rectify", False))
+    max_area = float(cfg.get("max_rectified_area_ratio", DEFAULT_MAX_AREA_RATIO))
     partners: dict[str, list[str]] = {}
     for ref_idx in range(len(shared)):
         ref_name = model.get_image_name(ref_idx)
@@ -180,6 +186,8 @@ def select_partners(workspace: Path, views: Mapping[str, View], cfg: Mapping) ->
                 continue
             cos_axes = np.abs(np.array([ref.forward @ baseline, src.forward @ baseline])) / norm
             if np.any(np.arccos(np.clip(cos_axes, 0.0, 1.0)) < min_axis):
+                continue
+            if must_rectify and rectify_pair(ref, src, max_area_ratio=max_area) is None:
                 continue
             candidates.append((n_shared * min(1.0, angle / ideal), src.name))
         candidates.sort(reverse=True)

@@ -241,3 +241,48 @@ def test_the_conditioning_filter_keeps_a_plane_as_accurate_when_poor_views_are_a
     beyond = kept["points"][:, 0] >= 2.1
     assert beyond.sum() == (poor[:, 0] >= 2.1).sum()
     assert well_conditioned(cloud, 0.1, 0.0)["points"].shape == (50000, 3)
+
+
+# ----------------------------------------------------------------------------- the normal tolerance
+
+
+def fused_points_with_one_tilted_normal_map(tmp_path: Path, max_normal_error: float, tilt_deg: float) -> int:
+    """Points fused from four nadir views 1 m apart at 20 m over the ground (exact oracle depth), the
+    last view's normals turned ``tilt_deg`` about its x axis (SGBM's depth-derived normals are that
+    far off on slanted walls), with ``fusion.max_normal_error`` and three views per point."""
+    workspace = tmp_path / f"ws_{max_normal_error}_{tilt_deg}"
+    (workspace / "images").mkdir(parents=True)
+    positions = (-1.5, -0.5, 0.5, 1.5)
+    views = [opencv_view(f"{i:06d}.png", [x, 0.0, 20.0, 90.0, -90.0]) for i, x in enumerate(positions)]
+    points = np.random.default_rng(0).uniform([-5.0, -5.0, 0.0], [5.0, 5.0, 0.0], (50, 3))
+    rec = shared_point_model(
+        [v.name for v in views], [v.rotation for v in views], [v.translation for v in views], points, INTR
+    )
+    (workspace / "sparse").mkdir()
+    rec.write(workspace / "sparse")
+    t = math.radians(tilt_deg)
+    turn = np.array([[1.0, 0.0, 0.0], [0.0, math.cos(t), -math.sin(t)], [0.0, math.sin(t), math.cos(t)]])
+    for i, view in enumerate(views):
+        cv2.imwrite(
+            str(workspace / "images" / view.name), np.full((INTR.height, INTR.width, 3), 128, np.uint8)
+        )
+        depth, normals = oracle_of_ground(view, 1.0, 0.0)
+        if i == len(views) - 1:
+            normals = normals @ turn.T
+        write_maps(workspace, view.name, depth, normals)
+    cfg = reconstruct_cfg(
+        **{"dense.fusion.max_normal_error": max_normal_error, "dense.fusion.conditioning_ratio": 0.0}
+    ).dense
+    return fuse(workspace, workspace / "fused.ply", cfg, [v.name for v in views], deterministic=True)
+
+
+def test_normals_off_by_20_deg_confirm_each_other_at_the_default_tolerance(tmp_path):
+    # One point a ground pixel seen by three views. At 20 m a metre is f / 20 = 13.86 px: three of
+    # the four views share 320 - 13.86 columns, three adjacent ones 320 - 27.7, of 240 rows.
+    exact = fused_points_with_one_tilted_normal_map(tmp_path, 30.0, 0.0)
+    assert exact == pytest.approx(240 * (320 - 13.86), rel=0.005)
+    assert fused_points_with_one_tilted_normal_map(tmp_path, 30.0, 20.0) == exact
+    # COLMAP's 10 deg: the tilted view confirms nothing, so only the first three views' common
+    # footprint is fused.
+    colmap = fused_points_with_one_tilted_normal_map(tmp_path, 10.0, 20.0)
+    assert colmap == pytest.approx(240 * (320 - 27.7), rel=0.005)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from experiments.depth_errors import depth_error_row, ground_truth_depth, triangulation_angle_deg
+from experiments.depth_errors import depth_error_row, ground_truth_depth, seen_by, triangulation_angle_deg
 from reconstruct.workspace import View
 from scene.enclosure import raycasting_scene
 
@@ -67,3 +67,18 @@ def test_error_row_on_constructed_maps():
     assert row["n_all"] == 80 and abs(row["over5cm_all"] - 30 / 80) < 1e-12
     assert abs(row["err50_all_m"]) < 1e-9 and abs(row["err90_all_m"] - 0.10) < 1e-6
     assert row["n_walls"] == 20 and abs(row["err50_walls_m"] - 0.10) < 1e-6 and row["over5cm_walls"] == 1.0
+    assert row["valid_share_walls"] == 1.0  # every wall pixel with a ground truth has a depth
+
+
+def test_seen_by_a_partner_is_the_shared_footprint_less_what_it_sees_occluded():
+    scene = _ground()
+    ref = _view((0.0, 0.0, 20.0), NADIR)
+    ref_gt, points, _ = ground_truth_depth(scene, ref)
+    has_gt = np.isfinite(ref_gt)
+    # 64 px at f = 50 and 20 m cover 25.6 m of ground; a partner 12.8 m along x sees half of it.
+    src = _view((12.8, 0.0, 20.0), NADIR)
+    seen = seen_by(points, has_gt, src, ground_truth_depth(scene, src)[0])
+    assert seen[:, 32:].all() and not seen[:, :32].any()
+    # The same partner whose ground-truth depth says something stands 1 m in front everywhere.
+    blocked = seen_by(points, has_gt, src, ground_truth_depth(scene, src)[0] - 1.0)
+    assert not blocked.any()

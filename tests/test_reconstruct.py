@@ -40,10 +40,11 @@ from reconstruct.flight import Flight, read_flight, simulate_gnss
 from reconstruct.fusion_chunks import owning_chunk, plan_chunks, read_visibility
 from reconstruct.pipeline import build_proxy, flight_content_key, proxy_flight_config, reconstruct_flight
 from reconstruct.proxy import degraded_ground_truth, oriented_cloud, poisson_proxy
+from reconstruct.rectify import rectify_pair
 from reconstruct.sfm import map_reconstruction, pose_prior_pairs, sfm_options, write_pose_priors
 from reconstruct.sfm_settings import COLMAP_LOCAL_BA
 from reconstruct.timing import stage_time
-from reconstruct.workspace import View, prepare_workspace, write_maps
+from reconstruct.workspace import View, prepare_workspace, select_partners, write_maps
 from scene.base import Box, MeshPart, Scene
 from scene.camera import Intrinsics, cam_from_world, look_at
 from tests.workspaces import shared_point_model
@@ -282,6 +283,49 @@ def test_disparity_window_holds_the_structure_when_the_span_exceeds_the_cap():
     assert lo <= 200.0 / 0.6 and 200.0 / 0.5 <= lo + num
     held = np.mean((200.0 / depth >= lo) & (200.0 / depth <= lo + num))
     assert held >= 0.9
+
+
+def oblique_views(intr: Intrinsics, positions, pitch_deg: float = -45.0) -> list[View]:
+    """Views at ``positions`` (x, y, z), all heading +y (yaw 90) and pitched ``pitch_deg``."""
+    K = intr.K.copy()
+    K[0, 2] -= 0.5
+    K[1, 2] -= 0.5
+    views = []
+    for i, position in enumerate(positions):
+        rot, t = cam_from_world(np.array([*position, 90.0, pitch_deg]))
+        views.append(View(f"{i:06d}.png", K, rot, t, intr.width, intr.height))
+    return views
+
+
+def test_a_partner_the_matcher_cannot_rectify_gets_no_slot(tmp_path):
+    """A view 45 deg down over the ground; one partner 4 m to its side, one 3 m aside and 4 m
+    ahead. Both pass the angle tests (the second's baseline is 55.6 deg from the axes, over the
+    50 deg minimum), but turning the second pair to face across its baseline stretches the canvas
+    past 4 images: the matcher drops it, so with partners_must_rectify it is not chosen at all."""
+    intr = Intrinsics(320, 240, 60.0)
+    views = oblique_views(intr, [(0.0, 0.0, 20.0), (4.0, 0.0, 20.0), (3.0, 4.0, 20.0)])
+    ref, side, ahead = views
+    assert rectify_pair(ref, side) is not None and rectify_pair(ref, ahead) is None
+    baseline = (ahead.center - ref.center) / np.linalg.norm(ahead.center - ref.center)
+    assert np.degrees(np.arccos(abs(ref.forward @ baseline))) == pytest.approx(55.6, abs=0.1)
+    points = np.random.default_rng(0).uniform([-4.0, 17.0, 0.0], [4.0, 23.0, 0.0], (60, 3))
+    rec = shared_point_model(
+        [v.name for v in views], [v.rotation for v in views], [v.translation for v in views], points, intr
+    )
+    workspace = tmp_path / "ws"
+    (workspace / "sparse").mkdir(parents=True)
+    (workspace / "images").mkdir()
+    rec.write(workspace / "sparse")
+    for view in views:
+        cv2.imwrite(str(workspace / "images" / view.name), np.full((intr.height, intr.width), 128, np.uint8))
+    by_name = {v.name: v for v in views}
+    former = select_partners(workspace, by_name, reconstruct_cfg().dense)  # the default: angles alone
+    assert sorted(former[ref.name]) == [side.name, ahead.name]
+    rectifying = reconstruct_cfg(**{"dense.partners_must_rectify": True}).dense
+    assert select_partners(workspace, by_name, rectifying)[ref.name] == [side.name]
+    # A looser canvas limit (the setting) lets the pair back in.
+    rectifying.max_rectified_area_ratio = 8.0
+    assert sorted(select_partners(workspace, by_name, rectifying)[ref.name]) == [side.name, ahead.name]
 
 
 def test_normals_from_depth_of_a_tilted_plane():
@@ -988,6 +1032,22 @@ def test_proxy_dense_settings_override_only_the_exploratory_flight():
     assert fusion == {**OmegaConf.to_container(cfg.dense.fusion), "method": "colmap"}
     with pytest.raises(ValueError, match=r"proxy\.dense\.fusion: unknown dense settings \['methd'\]"):
         proxy_flight_config(reconstruct_cfg(**{"proxy.dense": {"fusion": {"methd": "colmap"}}}))
+
+
+
+def test_the_proxy_keeps_colmaps_normal_tolerance_and_its_cache_key():
+    from reconstruct.pipeline import proxy_settings
+
+    cfg = reconstruct_cfg()
+    assert cfg.dense.fusion.max_normal_error == 30.0  # the scored flights (SGBM's depth-derived normals)
+    assert proxy_flight_config(cfg)["dense"]["fusion"]["max_normal_error"] == 10.0
+    # Spelled out at COLMAP's value, the proxy's tolerance keys its proxies as before it was spelled out.
+    former = reconstruct_cfg()
+    del former.proxy.dense.fusion["max_normal_error"]
+    former.dense.fusion.max_normal_error = 10.0
+    assert proxy_settings(proxy_flight_config(cfg)) == proxy_settings(proxy_flight_config(former))
+    looser = reconstruct_cfg(**{"proxy.dense.fusion.max_normal_error": 20.0})
+    assert proxy_settings(proxy_flight_config(looser)) != proxy_settings(proxy_flight_config(cfg))
 
 
 def _flight_of_images(image_dir: Path, images, intr: Intrinsics) -> Path:

@@ -100,3 +100,15 @@ def test_a_noise_repeat_runs_from_nothing_in_its_own_records(monkeypatch, tmp_pa
     cache = (tmp_path / "settled_noise" / "rep1" / "cache").resolve()
     assert second[3] == ["a=1", "reconstruct.deterministic=false", f"cache_dir={cache}"]
     assert kwargs == {"revision": "abc1234"}
+
+
+def test_records_of_another_revision_are_named_before_a_run():
+    from experiments.study_plan import foreign_records
+
+    commits = {"tomb/ours/0": "efed9486b020", "tomb/smith/0": "1234abcd5678", "tomb/yan/0": ""}
+    # A full revision sha against abbreviated and full record commits; a record without a commit is foreign.
+    assert foreign_records(commits, "efed9486b020255669cd73cd0eff17fab613948d") == [
+        "tomb/smith/0",
+        "tomb/yan/0",
+    ]
+    assert foreign_records({"tomb/ours/0": "efed9486b020255669cd73cd0eff17fab613948d"}, "efed948") == []
