@@ -193,18 +193,40 @@ def recorded_specs(preset: str, cells: Sequence[StudyCell]) -> set[str]:
     }
 
 
-def recorded_commits(preset: str, cells: Sequence[StudyCell]) -> dict[str, str]:
-    """The code commit (``metrics.json``'s ``code_commit``) of every recorded cell of ``cells``, by spec."""
+def recorded_fields(preset: str, cells: Sequence[StudyCell], key: str) -> dict[str, str]:
+    """``metrics.json``'s ``key`` of every recorded cell of ``cells``, by spec ("" where it has none)."""
     import json
 
     from experiments.record import record_dir
 
-    commits = {}
+    values = {}
     for c in cells:
         path = record_dir(c.preset(preset), c.scene, c.planner, c.seed, c.budget, c.gsd_m) / "metrics.json"
         if path.is_file():
-            commits[c.spec()] = str(json.loads(path.read_text()).get("code_commit") or "")
-    return commits
+            values[c.spec()] = str(json.loads(path.read_text()).get(key) or "")
+    return values
+
+
+def recorded_commits(preset: str, cells: Sequence[StudyCell]) -> dict[str, str]:
+    """The code commit (``metrics.json``'s ``code_commit``) of every recorded cell of ``cells``, by spec."""
+    return recorded_fields(preset, cells, "code_commit")
+
+
+def proxies_per_group(
+    cells: Sequence[StudyCell], fingerprints: dict[str, str]
+) -> dict[tuple[str, int], dict[str, int]]:
+    """Per scene and seed, how many recorded cells planned on each proxy (``proxy_fingerprint``;
+    noise repeats left out: each builds its own on purpose). A proxy rebuilt on another machine
+    differs in a few faces, and ours' plan follows them; a group with two proxies mixes that noise
+    into its front."""
+    groups: dict[tuple[str, int], dict[str, int]] = {}
+    for c in cells:
+        fingerprint = fingerprints.get(c.spec())
+        if c.repeat is not None or fingerprint is None:
+            continue
+        counts = groups.setdefault((c.scene, c.seed), {})
+        counts[fingerprint or "none"] = counts.get(fingerprint or "none", 0) + 1
+    return groups
 
 
 def foreign_records(commits: dict[str, str], revision_sha: str) -> list[str]:
@@ -267,6 +289,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(table.to_string(index=False, float_format=lambda v: f"{v:.1f}"))
     total = float(table["hours_left"].sum())
     print(f"{len(left)} of {len(cells)} cells left, about {total:.0f} cell-hours on 2 cores")
+    proxies = proxies_per_group(cells, recorded_fields(args.preset, cells, "proxy_fingerprint"))
+    for (scene, seed), counts in sorted(proxies.items()):
+        if len(counts) > 1:
+            listed = ", ".join(
+                f"{fp[:8]}: {n} cells" for fp, n in sorted(counts.items(), key=lambda kv: -kv[1])
+            )
+            print(
+                f"note: {scene} / seed {seed} planned on {len(counts)} proxies ({listed}), "
+                "built on different machines"
+            )
     if not args.run:
         return 0
     # Every cell of the study comes from one revision: a record of another would sit in its tables.

@@ -112,3 +112,28 @@ def test_records_of_another_revision_are_named_before_a_run():
         "tomb/yan/0",
     ]
     assert foreign_records({"tomb/ours/0": "efed9486b020255669cd73cd0eff17fab613948d"}, "efed948") == []
+
+
+def test_cells_that_planned_on_different_proxies_are_counted_per_scene_and_seed():
+    from experiments.study_plan import proxies_per_group
+
+    cells = [
+        StudyCell(1, "tomb", "ours", 0, "low"),
+        StudyCell(1, "tomb", "smith", 0),
+        StudyCell(1, "tomb", "yan", 0),
+        StudyCell(3, "tomb", "ours", 1),
+        StudyCell(7, "church", "ours", 0, repeat=0),
+        StudyCell(1, "church", "lawnmower", 0),
+    ]
+    fingerprints = {
+        "tomb/ours/0/low/0.03": "aaaa",
+        "tomb/smith/0/default/0.03": "bbbb",
+        "tomb/yan/0/default/0.03": "aaaa",
+        "tomb/ours/1/default/0.03": "cccc",
+        "church/ours/0/default/0.03@rep0": "dddd",
+    }
+    # The church's lawnmower has no record; the noise repeat builds its own proxy on purpose.
+    assert proxies_per_group(cells, fingerprints) == {
+        ("tomb", 0): {"aaaa": 2, "bbbb": 1},
+        ("tomb", 1): {"cccc": 1},
+    }
