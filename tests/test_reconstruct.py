@@ -1034,7 +1034,6 @@ def test_proxy_dense_settings_override_only_the_exploratory_flight():
         proxy_flight_config(reconstruct_cfg(**{"proxy.dense": {"fusion": {"methd": "colmap"}}}))
 
 
-
 def test_the_proxy_keeps_colmaps_normal_tolerance_and_its_cache_key():
     from reconstruct.pipeline import proxy_settings
 
