@@ -41,10 +41,12 @@ ROOT = Path(__file__).resolve().parents[1]
 
 RECORDS = ROOT / "results" / "cells"
 # The Hydra overrides travel with the record: a `--set` (a memory budget, a switch) changes how a cell
-# ran, and the run directory that holds them does not survive a move to a new machine.
+# ran, and the run directory that holds them does not survive a move to a new machine. So do the
+# views flown (a few kB): two cells' plans can be compared, or a plan flown again, from the record.
 RECORD_FILES = {
     "metrics.json": "metrics.json",
     "plan.json": "plan/plan.json",
+    "viewpoints.csv": "plan/viewpoints.csv",
     "overrides.yaml": ".hydra/overrides.yaml",
 }
 
@@ -74,8 +76,8 @@ def record_dir(
 
 
 def record_cell(run_dir: str | Path, preset: str, root: Path = RECORDS) -> tuple[Path, dict]:
-    """Copy a finished cell's ``metrics.json`` (and ``plan/plan.json`` when it has one) into its
-    record folder, each file atomically. Returns the folder and the metrics.
+    """Copy a finished cell's ``metrics.json`` (and ``plan/plan.json``, ``plan/viewpoints.csv`` and
+    its Hydra overrides where it has them) into its record folder, each file atomically. Returns the folder and the metrics.
 
     Raises:
         RunDirectoryError: no ``metrics.json``, or one without scene, planner and seed.

@@ -34,6 +34,7 @@ def test_a_cell_record_holds_its_metrics_and_plan(tmp_path):
     assert dest == tmp_path / "cells" / "default" / "tomb" / "yan" / "default" / "seed2"
     assert json.loads((dest / "metrics.json").read_text()) == json.loads((run / "metrics.json").read_text())
     assert (dest / "plan.json").read_text() == (run / "plan" / "plan.json").read_text()
+    assert (dest / "viewpoints.csv").read_text() == (run / "plan" / "viewpoints.csv").read_text()
     assert (dest / "overrides.yaml").read_text() == overrides
     assert summary_line(metrics) == (
         "Cell record: tomb / yan / seed 2: 1343 images, 1340 registered, acc90 5.1 cm, "
@@ -45,6 +46,7 @@ def test_a_failed_cell_is_recorded_with_its_error(tmp_path):
     run = write_run(tmp_path, "church", "ours", 0, status="failed", error="no model", failed_stage="mapping")
     dest, metrics = record_cell(run, "default", root=tmp_path / "cells")
     assert not (dest / "plan.json").exists()
+    assert not (dest / "viewpoints.csv").exists()
     assert not (dest / "overrides.yaml").exists()
     assert summary_line(metrics) == "Cell record: church / ours / seed 0 failed in stage mapping: no model"
 
