@@ -19,8 +19,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from experiments.runs import RunDirectoryError, load_runs, out_is_a_file, runs_frame
-from scene.io import write_text_atomic
+from experiments.runs import RunDirectoryError, load_runs, out_is_a_file, runs_frame, write_findings
 
 KEYS = ("scene", "planner", "seed", "budget", "target_gsd_m")
 # (field, column title, scale, format): what a reader compares between the two records of a cell.
@@ -99,10 +98,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     text = to_markdown(pairs, (str(args.first), str(args.second)))
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(args.out / "cell_pairs.csv", pairs.to_csv(index=False))
-    write_text_atomic(args.out / "cell_pairs.md", "# The same cells, recorded twice\n\n" + text)
-    print(text, end="")
+    write_findings(args.out, "cell_pairs", pairs, "The same cells, recorded twice", text)
     return 0
 
 

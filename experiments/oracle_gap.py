@@ -19,8 +19,14 @@ from collections.abc import Sequence
 
 import pandas as pd
 
-from experiments.runs import RunDirectoryError, load_runs, out_is_a_file, runs_frame, tool_parser
-from scene.io import write_text_atomic
+from experiments.runs import (
+    RunDirectoryError,
+    load_runs,
+    out_is_a_file,
+    runs_frame,
+    tool_parser,
+    write_findings,
+)
 
 # (metric, its oracle field, the sign that makes "gap" the real reconstruction's shortfall)
 METRICS = (("comp_050", "oracle_comp_050", 1.0), ("acc90_m", "oracle_acc90_m", -1.0))
@@ -101,10 +107,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     summary = rank_agreement(cells)
     text = to_markdown(cells, summary)
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(args.out / "oracle_gap.csv", cells.to_csv(index=False))
-    write_text_atomic(args.out / "oracle_gap.md", "# Real reconstruction against its oracle\n\n" + text)
-    print(text, end="")
+    write_findings(args.out, "oracle_gap", cells, "Real reconstruction against its oracle", text)
     return 0
 
 

@@ -77,7 +77,8 @@ def record_dir(
 
 def record_cell(run_dir: str | Path, preset: str, root: Path = RECORDS) -> tuple[Path, dict]:
     """Copy a finished cell's ``metrics.json`` (and ``plan/plan.json``, ``plan/viewpoints.csv`` and
-    its Hydra overrides where it has them) into its record folder, each file atomically. Returns the folder and the metrics.
+    its Hydra overrides where it has them) into its record folder, each file atomically. Returns the
+    folder and the metrics.
 
     Raises:
         RunDirectoryError: no ``metrics.json``, or one without scene, planner and seed.

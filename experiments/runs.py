@@ -425,6 +425,17 @@ def tool_parser(prog: str, doc: str, out_help: str | None = None) -> argparse.Ar
     return parser
 
 
+def write_findings(out: Path, stem: str, frame: pd.DataFrame, title: str, text: str) -> None:
+    """A tool's findings into ``out``, each file atomically: ``<stem>.csv`` (``frame``, full
+    precision) and ``<stem>.md`` (``# title``, then ``text``); ``text`` is printed too."""
+    from scene.io import write_text_atomic
+
+    out.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(out / f"{stem}.csv", frame.to_csv(index=False))
+    write_text_atomic(out / f"{stem}.md", f"# {title}\n\n{text}")
+    print(text, end="")
+
+
 def out_is_a_file(out: Path) -> bool:
     """True (and the error printed) when a tool's ``--out`` names something that is not a directory."""
     if out.exists() and not out.is_dir():
