@@ -196,13 +196,18 @@ def run_queue(
     force: bool = False,
     commit: bool = True,
     revision: str = "HEAD",
+    proxies: dict[tuple[str, int], str] | None = None,
 ) -> int:
     """Run the cells one after the other from a worktree of ``revision``; record (and commit) each one.
 
     A cell is ``(scene, planner, seed, budget[, gsd_m[, overrides]])``: gsd_m None is the configured
     GSD; ``overrides`` are that cell's own ``run.py`` overrides (before the queue's ``overrides``).
+    ``proxies``: the proxy (``proxy_fingerprint``) each scene and seed's recorded cells planned on. A
+    cell that planned on another one (its exploration rebuilt differently in this session) is
+    recorded under ``<preset>_proxy_<fingerprint>`` instead, and the queue stops: its front would mix
+    two proxies. A group's first cell sets its proxy.
 
-    Returns the number of cells that failed.
+    Returns the number of cells that failed (a cell on another proxy counts).
 
     Raises:
         ValueError: ``revision`` names no commit of the repository."""
@@ -256,6 +261,7 @@ def run_queue(
             flush=True,
         )
     failed = 0
+    proxies = dict(proxies or {})
     with revision_worktree(head, prefix="uavplan_queue_") as tree:
         env = dict(os.environ, UAVPLAN_CACHE=str(ROOT / "cache"), PYTHONPATH=str(tree))
         # the shared meshes' folder (conf/scene/school.yaml) as seen from the checkout, not the worktree
@@ -285,13 +291,40 @@ def run_queue(
                 print(f"{name}: exit {code} and no metrics.json: nothing recorded", flush=True)
                 failed += 1
                 continue
-            dest, metrics = record_cell(run_dir, preset)
-            failed += metrics.get("status", "ok") != "ok"
+            metrics = read_metrics(run_dir)
+            other = other_proxy(proxies, metrics)
+            dest, metrics = record_cell(run_dir, preset if other is None else proxy_preset(preset, other))
+            failed += metrics.get("status", "ok") != "ok" or other is not None
             line = summary_line(metrics) + f" (code {head})"
             print(line, flush=True)
             if commit:
                 commit_record(dest, line)
+            if other is not None:
+                expected = proxies[(scene, int(seed))]
+                print(
+                    f"error: {scene} / seed {seed}: this cell planned on proxy {other[:8]}, the group's "
+                    f"recorded cells on {expected[:8]}; recorded under {os.path.relpath(dest, ROOT)}, "
+                    "queue stopped "
+                    "(run the group again on one proxy, or restore the proxy it planned on)",
+                    flush=True,
+                )
+                return failed
+            if metrics.get("proxy_fingerprint"):
+                proxies.setdefault((scene, int(seed)), str(metrics["proxy_fingerprint"]))
     return failed
+
+
+def other_proxy(proxies: dict[tuple[str, int], str], metrics: dict) -> str | None:
+    """The proxy a cell planned on (``metrics.json``) where it is not its scene and seed's in
+    ``proxies``; None where it is, or where either is unknown."""
+    got = metrics.get("proxy_fingerprint")
+    expected = proxies.get((str(metrics.get("scene")), int(metrics.get("seed", -1))))
+    return str(got) if got and expected and got != expected else None
+
+
+def proxy_preset(preset: str, fingerprint: str) -> str:
+    """The record folder of a cell that planned on another proxy than its group's."""
+    return f"{preset}_proxy_{fingerprint[:8]}"
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -61,6 +61,12 @@ MESH_SCENES = ("school", "powerplant")
 SEEDS = (0, 1, 2)
 # Overrides a scene needs in every cell (conf/scene/powerplant.yaml says why).
 SCENE_OVERRIDES = {"powerplant": ("exploration=lawnmower_orbit",)}
+# Every cell but the noise floor's reconstructs in the deterministic mode (results/reproducibility.md;
+# about 8 % more wall time): a session that starts on a new machine rebuilds each scene's exploration,
+# and in the default mode that gives another proxy (two sessions' tomb proxies differed, and so did
+# the plans on them by up to 5 points of completeness), so a front run over several sessions would
+# mix proxies. The queue stops where a rebuilt proxy still differs (experiments.record.run_queue).
+STUDY_MODE = ("reconstruct.deterministic=true",)
 # The noise floor's cells (the issue asks for ours and one baseline on the church) and repeats.
 NOISE_CELLS = (("church", "ours"), ("church", "smith"))
 NOISE_REPEATS = 3
@@ -241,8 +247,10 @@ def foreign_records(commits: dict[str, str], revision_sha: str) -> list[str]:
 def run_cells(
     cells: Sequence[StudyCell], preset: str, study: Path, overrides: Sequence[str], revision: str
 ) -> int:
-    """Run ``cells`` through the record queue, each group of one record folder in order; a repeat in
-    non-deterministic mode with a stage cache of its own. Returns the number of failed cells."""
+    """Run ``cells`` through the record queue, each group of one record folder in order: the study's
+    cells in the deterministic mode (``STUDY_MODE``), each scene and seed on the proxy its recorded
+    cells planned on; a noise repeat in the default mode with a stage cache of its own. Returns the
+    number of failed cells."""
     from experiments.record import run_queue
 
     failed = 0
@@ -253,11 +261,33 @@ def run_cells(
         repeat = group[0].repeat
         extra = list(overrides)
         runs = Path(study)
-        if repeat is not None:
+        proxies = None
+        if repeat is None:
+            extra += STUDY_MODE
+            proxies = group_proxies(
+                proxies_per_group(group, recorded_fields(preset, group, "proxy_fingerprint"))
+            )
+        else:
             runs = runs.parent / f"{runs.name}_noise" / f"rep{repeat}"
             extra += ["reconstruct.deterministic=false", f"cache_dir={(runs / 'cache').resolve()}"]
-        failed += run_queue([c.queue_cell() for c in group], folder, runs, extra, revision=revision)
+        failed += run_queue(
+            [c.queue_cell() for c in group], folder, runs, extra, revision=revision, proxies=proxies
+        )
     return failed
+
+
+def group_proxies(counts: dict[tuple[str, int], dict[str, int]]) -> dict[tuple[str, int], str]:
+    """Per scene and seed, the proxy most of its recorded cells planned on (``proxies_per_group``'s
+    counts; records without a fingerprint left out)."""
+    known = {key: {fp: n for fp, n in c.items() if fp != "none"} for key, c in counts.items()}
+    return {key: max(c, key=c.get) for key, c in known.items() if c}
+
+
+def default_mode_records(preset: str, cells: Sequence[StudyCell]) -> list[str]:
+    """The specs of ``cells`` (noise repeats left out) recorded in the default, non-deterministic mode:
+    their proxies cannot be rebuilt, so they do not belong in a front with the study's cells."""
+    modes = recorded_fields(preset, [c for c in cells if c.repeat is None], "deterministic")
+    return sorted(spec for spec, mode in modes.items() if mode != "True")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -297,7 +327,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
             print(
                 f"note: {scene} / seed {seed} planned on {len(counts)} proxies ({listed}), "
-                "built on different machines"
+                "each rebuilt in another session"
             )
     if not args.run:
         return 0
@@ -317,6 +347,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(
             f"error: {len(foreign)} cell(s) of results/cells/{args.preset} were recorded at another revision "
             f"than {args.revision} (first: {foreign[0]}); move them aside or run at their revision",
+            file=sys.stderr,
+        )
+        return 2
+    default_mode = default_mode_records(args.preset, cells)
+    if default_mode:
+        print(
+            f"error: {len(default_mode)} cell(s) of results/cells/{args.preset} were recorded in the default "
+            f"(non-deterministic) mode (first: {default_mode[0]}); move them aside: the study runs "
+            f"{' '.join(STUDY_MODE)}",
             file=sys.stderr,
         )
         return 2

@@ -130,3 +130,16 @@ def test_the_ignore_check_looks_at_every_cell_of_the_queue(tmp_path):
     with pytest.raises(ValueError, match=r"cells/queue_check/__pycache__/ours/.*is ignored by git"):
         run_queue(cells, "queue_check", tmp_path)
     assert not any(tmp_path.iterdir())
+
+
+def test_a_cell_on_another_proxy_than_its_group_is_named_and_filed_apart():
+    from experiments.record import other_proxy, proxy_preset
+
+    proxies = {("tomb", 0): "ff4b3dae0123abcd"}
+    cell = {"scene": "tomb", "seed": 0, "proxy_fingerprint": "e761cbcb4567ef01"}
+    assert other_proxy(proxies, cell) == "e761cbcb4567ef01"
+    assert proxy_preset("settled", "e761cbcb4567ef01") == "settled_proxy_e761cbcb"
+    # The group's proxy, another group, a record without a fingerprint: nothing to say.
+    assert other_proxy(proxies, cell | {"proxy_fingerprint": "ff4b3dae0123abcd"}) is None
+    assert other_proxy(proxies, cell | {"seed": 1}) is None
+    assert other_proxy(proxies, {"scene": "tomb", "seed": 0}) is None

@@ -93,13 +93,16 @@ def test_a_noise_repeat_runs_from_nothing_in_its_own_records(monkeypatch, tmp_pa
     calls = []
     monkeypatch.setattr(experiments.record, "run_queue", lambda *a, **k: calls.append((a, k)) or 0)
     cells = [StudyCell(1, "tomb", "ours", 0), StudyCell(7, "church", "ours", 0, repeat=1)]
-    assert run_cells(cells, "settled", tmp_path / "settled", ["a=1"], "abc1234") == 0
-    (first, _), (second, kwargs) = calls
-    assert first[1:4] == ("settled", tmp_path / "settled", ["a=1"])
-    assert second[1] == "settled_noise/rep1" and second[2] == tmp_path / "settled_noise" / "rep1"
+    preset = "no_such_preset"  # no records: no proxy to hold a group to
+    assert run_cells(cells, preset, tmp_path / "settled", ["a=1"], "abc1234") == 0
+    (first, first_kwargs), (second, kwargs) = calls
+    # The study's cells run deterministic; the noise floor's repeats in the default mode.
+    assert first[1:4] == (preset, tmp_path / "settled", ["a=1", "reconstruct.deterministic=true"])
+    assert first_kwargs == {"revision": "abc1234", "proxies": {}}
+    assert second[1] == f"{preset}_noise/rep1" and second[2] == tmp_path / "settled_noise" / "rep1"
     cache = (tmp_path / "settled_noise" / "rep1" / "cache").resolve()
     assert second[3] == ["a=1", "reconstruct.deterministic=false", f"cache_dir={cache}"]
-    assert kwargs == {"revision": "abc1234"}
+    assert kwargs == {"revision": "abc1234", "proxies": None}
 
 
 def test_records_of_another_revision_are_named_before_a_run():
@@ -137,3 +140,38 @@ def test_cells_that_planned_on_different_proxies_are_counted_per_scene_and_seed(
         ("tomb", 0): {"aaaa": 2, "bbbb": 1},
         ("tomb", 1): {"cccc": 1},
     }
+
+
+def test_a_group_is_held_to_the_proxy_most_of_its_records_planned_on():
+    from experiments.study_plan import group_proxies
+
+    counts = {
+        ("tomb", 0): {"aaaa": 2, "bbbb": 1},
+        ("church", 0): {"none": 3},
+        ("tomb", 1): {"none": 2, "cccc": 1},
+    }
+    assert group_proxies(counts) == {("tomb", 0): "aaaa", ("tomb", 1): "cccc"}
+
+
+def test_records_of_the_default_mode_are_named_before_a_run(monkeypatch):
+    import experiments.study_plan as study_plan
+
+    modes = {
+        "tomb/ours/0/default/0.03": "True",
+        "tomb/smith/0/default/0.03": "",
+        "tomb/yan/0/default/0.03": "",
+    }
+    asked = []
+
+    def fields(preset, cells, key):
+        asked.append((key, [c.spec() for c in cells]))
+        return modes
+
+    monkeypatch.setattr(study_plan, "recorded_fields", fields)
+    cells = [StudyCell(1, "tomb", "ours", 0), StudyCell(7, "church", "ours", 0, repeat=0)]
+    assert study_plan.default_mode_records("settled", cells) == [
+        "tomb/smith/0/default/0.03",
+        "tomb/yan/0/default/0.03",
+    ]
+    # The noise floor's repeats run in the default mode on purpose: not asked about.
+    assert asked == [("deterministic", ["tomb/ours/0/default/0.03"])]
