@@ -429,7 +429,14 @@ def plan_with(
         )
         final_state.reset(cov_model.observe(vps))
         kept, budget = fit_budget(
-            final_state, vps, kinds, settings.budget, settings.drone, takeoff, int(cfg["tsp_runs"])
+            final_state,
+            vps,
+            kinds,
+            settings.budget,
+            settings.drone,
+            takeoff,
+            int(cfg["tsp_runs"]),
+            settings.prune,
         )
         # "unconstrained": what the objective asked for (after a fill: the filled plan, before the prune).
         budget |= {

@@ -118,3 +118,62 @@ def test_a_budget_below_the_coverage_views_is_refused_with_the_smallest_one():
 def test_a_bad_budget_is_refused_before_any_work(override, named):
     with pytest.raises(SettingsError, match=named):
         cell_settings(smoke(override))
+
+
+def test_a_linked_prune_skips_the_views_that_hold_the_graph_together():
+    from planner.ours_budget import linked_victims
+
+    # A chain 0-1-2 hanging off the clique 2-3-4-5.
+    edges = np.zeros((6, 6), bool)
+    for a, b in [(0, 1), (1, 2), (2, 3), (2, 4), (2, 5), (3, 4), (3, 5), (4, 5)]:
+        edges[a, b] = edges[b, a] = True
+    floor = np.minimum(edges.sum(axis=1), 2)  # [1, 2, 2, 2, 2, 2]
+    # 1 and 2 are cut vertices; 0 would leave 1 one edge; after 3 goes, 4 and 5 are down to two.
+    assert linked_victims(edges, np.array([1, 2, 0, 3, 4, 5]), 2, floor) == [3]
+    assert linked_victims(edges, np.array([5, 4, 3]), 3, floor) == [5]
+    assert linked_victims(edges, np.array([0]), 1, np.zeros(6, int)) == [0]
+
+
+def test_the_linked_prune_keeps_the_view_graph_and_is_close_to_the_best_linked_subset():
+    """The ring of eight, a budget of five: the linked prune's graph has no more components than the
+    full plan's and its R is within 3 % of the best of the 56 subsets that keep the graph so."""
+    from planner.ours_budget import PruneRule, _components
+
+    mesh = box_building(size=(10.0, 8.0, 6.0), ground_half=None)
+    points, normals = sample_surface(mesh, 300, seed=0)
+    model = VisibilityModel(mesh, points, normals, CAMERA, VisibilityLimits(1.0, 40.0, 80.0))
+    params = HeuristicParams(k_count=3, target_lo_m=16.0, target_hi_m=24.0, d_margin_m=10.0)
+    views = ring_candidates()
+    obs = model.observe(views)
+
+    def state_of(subset) -> ObjectiveState:
+        state = ObjectiveState(params, len(points), points=points)
+        state.reset(obs.take(list(subset)))
+        return state
+
+    full = state_of(range(8)).pair_scores() > params.tau_edge
+    rule = PruneRule(keep_linked=True, min_links=2)
+    floor = np.minimum(full.sum(axis=1), rule.min_links)
+
+    def linked(subset) -> bool:
+        edges = full[np.ix_(subset, subset)]
+        return _components(edges) <= _components(full) and bool(
+            (edges.sum(axis=1) >= floor[list(subset)]).all()
+        )
+
+    subsets = [s for s in itertools.combinations(range(8), 5) if linked(s)]
+    best = max(state_of(s).R for s in subsets)
+    kept, record = fit_budget(
+        state_of(range(8)), views, ["detail"] * 8, BudgetLimit(max_images=5), None, np.zeros(3), rule=rule
+    )
+    assert kept.sum() == 5 and linked(tuple(np.flatnonzero(kept)))
+    assert record["links_broken"] == 0
+    assert record["graph_components_after"] <= record["graph_components_before"]
+    assert record["R_after"] >= 0.97 * best
+
+
+def test_an_image_budget_keeps_the_smoke_plans_view_graph():
+    plan = box_plan(smoke("planner.budget_limit.max_images=50"))
+    budget = plan.info["budget"]
+    assert budget["keep_linked"] is True and budget["links_broken"] == 0
+    assert budget["graph_components_after"] <= budget["graph_components_before"]
