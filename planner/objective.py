@@ -309,7 +309,9 @@ class ObjectiveState:
                 "connectivity": 0.0,
                 "R_viewpoint": 0.0,
             }
-        f = self.pair_scores()
+        rows = np.arange(n_vp)
+        f = self._pair_scores(self.common, self.n_visible, self.n_visible) * self._match(rows, rows)
+        np.fill_diagonal(f, 0.0)
         s_ovl = float(_topk_sum(f, self.params.top_k).sum() / (self.params.top_k * n_vp))
         edges = f > self.params.tau_edge
         _, labels = connected_components(coo_matrix(edges).tocsr(), directed=False)
@@ -324,14 +326,6 @@ class ObjectiveState:
             "connectivity": s_conn,
             "R_viewpoint": r_vp,
         }
-
-    def pair_scores(self) -> np.ndarray:
-        """(V, V) the pair scores f_ij of Eq. 8 over the stored views (times their matchability g_ij
-        with ``matchable_overlap``), 0 on the diagonal; the view graph's edges are ``f > tau_edge``."""
-        rows = np.arange(self.n_viewpoints)
-        f = self._pair_scores(self.common, self.n_visible, self.n_visible) * self._match(rows, rows)
-        np.fill_diagonal(f, 0.0)
-        return f
 
     def _pair_scores(self, common, n_a, n_b) -> np.ndarray:
         smaller = np.minimum(np.asarray(n_a)[..., :, None], np.asarray(n_b)[..., None, :])

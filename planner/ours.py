@@ -429,14 +429,7 @@ def plan_with(
         )
         final_state.reset(cov_model.observe(vps))
         kept, budget = fit_budget(
-            final_state,
-            vps,
-            kinds,
-            settings.budget,
-            settings.drone,
-            takeoff,
-            int(cfg["tsp_runs"]),
-            settings.prune,
+            final_state, vps, kinds, settings.budget, settings.drone, takeoff, int(cfg["tsp_runs"])
         )
         # "unconstrained": what the objective asked for (after a fill: the filled plan, before the prune).
         budget |= {

@@ -5,14 +5,11 @@ budget open. Chosen here: the paper's stages run as they are (addition, repair, 
 detail then coverage); then, while the plan exceeds the budget, the views whose removal costs the
 objective least are removed: per image for an image budget, per second of flight saved for a time or
 battery budget (a view's stop and the detour to it, in the flight-time order of
-``planner.trajectory.order_by_flight_time``). The objective is the one the plan reports as its final
-R (Eq. 10 with the detail heuristics, every view seen within the coverage range), so the views kept
-are the ones the objective values most for what they cost. With ``budget_prune.keep_linked`` a view
-goes only where the paper's view graph (Eq. 9's edges) keeps its components and each remaining view
-at least ``min_links`` edges: R rates a linking view by the samples it sees, not by the views SfM
-registers through it, and a prune by R alone left chains of low wall views SfM could not register.
-A budget the plan already fits leaves it as it is; a budget below what the model-coverage views
-alone need is refused, naming the smallest that can be planned.
+``planner.trajectory.order_by_flight_time``). The objective is the one the plan reports as its
+final R (Eq. 10 with the detail heuristics, every view seen within the coverage range), so the
+views kept are the ones the objective values most for what they cost. A budget the plan already
+fits leaves it as it is; a budget below what the model-coverage views alone need is refused, naming
+the smallest that can be planned.
 """
 
 from __future__ import annotations
@@ -60,53 +57,6 @@ class BudgetLimit:
         return {k: v for k, v in self.__dict__.items() if v is not None}
 
 
-@dataclass(frozen=True)
-class PruneRule:
-    """``budget_prune`` of ``conf/planner/ours.yaml``: what a budget prune must leave linked."""
-
-    keep_linked: bool = setting(True)
-    min_links: int = setting(2, low=1)
-
-    @classmethod
-    def from_config(cls, node: Mapping | None) -> PruneRule:
-        """From the ``budget_prune`` mapping; a ``PlanningError`` names a bad setting."""
-        try:
-            return typed_settings(cls, node or {}, "planner ours: budget_prune")
-        except ValueError as exc:
-            raise PlanningError(str(exc)) from exc
-
-
-def linked_victims(edges: np.ndarray, ranked: np.ndarray, batch: int, floor: np.ndarray) -> list[int]:
-    """Up to ``batch`` views to remove, cheapest first (``ranked``), that keep the view graph linked.
-
-    A view may go when it is no articulation point of the graph of the views still kept (its removal
-    splits no component) and each neighbour keeps at least ``floor`` of it edges.
-
-    Args:
-        edges: (V, V) bool, symmetric: the view graph.
-        ranked: the views in the order they would go (cheapest first).
-        batch: how many to pick at most.
-        floor: (V,) the fewest edges each view may be left with.
-
-    Returns:
-        the views picked, in the order picked (none where every view is needed to keep the graph linked).
-    """
-    import networkx as nx
-
-    graph = nx.from_numpy_array(np.asarray(edges, bool).astype(np.uint8))
-    cut = set(nx.articulation_points(graph))
-    picked: list[int] = []
-    for view in (int(v) for v in ranked):
-        if len(picked) == batch:
-            break
-        if view in cut or any(graph.degree(u) <= floor[u] for u in graph.neighbors(view)):
-            continue
-        graph.remove_node(view)
-        picked.append(view)
-        cut = set(nx.articulation_points(graph))
-    return picked
-
-
 def flight_of(viewpoints: np.ndarray, drone, takeoff: np.ndarray, tsp_runs: int) -> tuple[np.ndarray, dict]:
     """The flight-time order of ``viewpoints`` and the drone model's summary of it."""
     from drone.model import flight_summary
@@ -147,7 +97,6 @@ def fit_budget(
     drone,
     takeoff: np.ndarray,
     tsp_runs: int = 1,
-    rule: PruneRule = PruneRule(keep_linked=False),
 ) -> tuple[np.ndarray, dict]:
     """Remove views of ``state`` (whose rows are ``viewpoints``) until the plan fits ``limit``.
 
@@ -157,13 +106,10 @@ def fit_budget(
         limit: the budget.
         drone: the drone, for a time or battery budget (``drone.model.DroneSettings``).
         takeoff: (3,) take-off point (m).
-        rule: what the prune leaves linked (``linked_victims``); where every view left is needed
-            for that, the cheapest goes anyway (counted in the record's ``links_broken``).
 
     Returns:
         (V,) bool: the views kept; the record ``plan.json`` keeps (asked, what the unconstrained
-        plan needed and what the kept views spend, R before and after, the view graph's components
-        before and after).
+        plan needed and what the kept views spend, R before and after).
 
     Raises:
         PlanningError: the budget is below what the model-coverage views alone need (the message
@@ -175,11 +121,6 @@ def fit_budget(
     before = {"n_images": len(vps), **({} if flight is None else _spent(flight))}
     _refuse_below_coverage(vps, kinds, limit, drone, takeoff, tsp_runs)
     r_before = state.R
-    tau = state.params.tau_edge
-    components_before = _components(state.pair_scores() > tau)
-    # Each view keeps min_links edges, or as many as it had in the plan the prune starts from.
-    floor = np.minimum((state.pair_scores() > tau).sum(axis=1), rule.min_links)
-    links_broken = 0
     while _over(limit, int(kept.sum()), flight):
         rows = np.flatnonzero(kept)  # state row k is viewpoint rows[k]
         removal = np.array([state.evaluate_removal(k) for k in range(len(rows))])
@@ -195,12 +136,7 @@ def fit_budget(
         else:
             to_go = n_views - int(limit.max_images)
         batch = max(1, min(n_views - 1, int(_BATCH_SHARE * to_go) or 1))
-        ranked = np.lexsort((np.arange(n_views), loss))
-        victims = ranked[:batch]
-        if rule.keep_linked:
-            picked = linked_victims(state.pair_scores() > tau, ranked, batch, floor[rows])
-            links_broken += not picked
-            victims = np.asarray(picked or ranked[:1], dtype=np.int64)
+        victims = np.lexsort((np.arange(n_views), loss))[:batch]
         state.commit(victims)
         kept[rows[victims]] = False
         if limit.timed:
@@ -212,18 +148,7 @@ def fit_budget(
         "spent": spent,
         "R_before": r_before,
         "R_after": state.R,
-        "keep_linked": rule.keep_linked,
-        "graph_components_before": components_before,
-        "graph_components_after": _components(state.pair_scores() > tau),
-        "links_broken": links_broken,
     }
-
-
-def _components(edges: np.ndarray) -> int:
-    from scipy.sparse import csr_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    return int(connected_components(csr_matrix(np.asarray(edges, bool)), directed=False)[0])
 
 
 def _target_s(limit: BudgetLimit, drone) -> float:

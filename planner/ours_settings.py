@@ -17,7 +17,7 @@ import numpy as np
 from planner.candidates import CandidateSettings, FlightLimits
 from planner.cmaes_refine import CmaSettings
 from planner.heuristics import HeuristicParams
-from planner.ours_budget import BudgetLimit, PruneRule
+from planner.ours_budget import BudgetLimit
 from planner.visibility import VisibilityLimits
 from scene.camera import Intrinsics
 from scene.plan import PlanningError
@@ -99,7 +99,6 @@ class OursSettings:
         n_points: surface samples.
         takeoff: [x, y, z] (m), or None for the proxy's lowest corner on the ground.
         budget: the crew's budget (``planner.ours_budget``); ``drone`` the drone it is flown on.
-        prune: what the budget's prune leaves linked (``budget_prune``).
     """
 
     cfg: dict
@@ -118,7 +117,6 @@ class OursSettings:
     takeoff: tuple[float, float, float] | None
     budget: BudgetLimit
     drone: object
-    prune: PruneRule
 
     @classmethod
     def build(cls, cfg: dict, intrinsics: Intrinsics) -> OursSettings:
@@ -231,5 +229,4 @@ class OursSettings:
             takeoff=takeoff,
             budget=BudgetLimit.from_config(cfg.get("budget_limit")),
             drone=_drone(cfg.get("drone")),
-            prune=PruneRule.from_config(cfg.get("budget_prune")),
         )
