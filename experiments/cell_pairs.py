@@ -1,6 +1,6 @@
 """The same cells recorded twice (two machines, two proxies, two revisions), figure beside figure.
 
-    uavplan-study cell-pairs results/cells/settled_82f401e_proxy_e761 results/cells/settled_82f401e_proxy_ff4b --out DIR
+    uavplan-study cell-pairs results/cells/FIRST results/cells/SECOND --out DIR
 
 A cell of the first folder is paired with the cell of the second that has its scene, planner, seed,
 budget and GSD (``target_gsd_m``); a cell recorded in one folder only is left out. Per pair: the
