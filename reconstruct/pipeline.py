@@ -38,7 +38,7 @@ from reconstruct.flight import CAMERAS_FILE, Flight, read_flight, simulate_gnss
 from reconstruct.proxy import poisson_proxy
 from reconstruct.rectify import DEFAULT_MAX_AREA_RATIO
 from reconstruct.sfm import run_sfm
-from reconstruct.sfm_settings import COLMAP_GLOBAL_BA_MAX_REFINEMENTS, COLMAP_LOCAL_BA
+from reconstruct.sfm_settings import COLMAP_ABS_POSE, COLMAP_GLOBAL_BA_MAX_REFINEMENTS, COLMAP_LOCAL_BA
 from reconstruct.timing import stage_time
 from scene.base import Box
 from scene.config import plain
@@ -70,6 +70,7 @@ GLOBAL_ONLY_MAPPING_KEYS = ("global_prior_ba", "global_prior_ba_max_iterations")
 COLMAP_VALUED_MAPPING_KEYS = {
     "global_ba_max_refinements": COLMAP_GLOBAL_BA_MAX_REFINEMENTS,
     **COLMAP_LOCAL_BA,
+    **COLMAP_ABS_POSE,
 }
 # dense.fusion's memory budget changes a cloud only for a flight whose fusion would exceed it.
 FUSION_BUDGET_KEY = "max_memory_gb"

@@ -136,6 +136,8 @@ def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> Sfm
     incremental.mapper.ba_local_num_images = pcfg.local_ba_num_images
     incremental.ba_local_max_num_iterations = pcfg.local_ba_max_iterations
     incremental.ba_local_max_refinements = pcfg.local_ba_max_refinements
+    incremental.mapper.abs_pose_min_num_inliers = pcfg.abs_pose_min_num_inliers
+    incremental.mapper.abs_pose_min_inlier_ratio = pcfg.abs_pose_min_inlier_ratio
     incremental.use_prior_position = pcfg.use_prior_position
     incremental.use_robust_loss_on_prior_position = (
         pcfg.use_prior_position and pcfg.robust_loss_on_prior_position

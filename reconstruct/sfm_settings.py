@@ -19,6 +19,9 @@ COLMAP_GLOBAL_BA_MAX_REFINEMENTS = 5
 # COLMAP's local bundle adjustment after each registered image: the images sharing most points with
 # it, Ceres iterations, bundle adjust + filter rounds. Settings added after records at these values.
 COLMAP_LOCAL_BA = {"local_ba_num_images": 6, "local_ba_max_iterations": 25, "local_ba_max_refinements": 2}
+# COLMAP's test before the incremental mapper registers a new image: RANSAC inliers of its 2D-3D
+# correspondences, in number and as a share of them. Settings added after records at these values.
+COLMAP_ABS_POSE = {"abs_pose_min_num_inliers": 30, "abs_pose_min_inlier_ratio": 0.25}
 
 
 @dataclass(frozen=True)
@@ -67,6 +70,8 @@ class MappingSettings:
     local_ba_num_images: int = setting(COLMAP_LOCAL_BA["local_ba_num_images"], low=1)
     local_ba_max_iterations: int = setting(COLMAP_LOCAL_BA["local_ba_max_iterations"], low=1)
     local_ba_max_refinements: int = setting(COLMAP_LOCAL_BA["local_ba_max_refinements"], low=1)
+    abs_pose_min_num_inliers: int = setting(COLMAP_ABS_POSE["abs_pose_min_num_inliers"], low=4)
+    abs_pose_min_inlier_ratio: float = setting(COLMAP_ABS_POSE["abs_pose_min_inlier_ratio"], above=0, high=1)
 
 
 @dataclass(frozen=True)

@@ -42,7 +42,7 @@ from reconstruct.pipeline import build_proxy, flight_content_key, proxy_flight_c
 from reconstruct.proxy import degraded_ground_truth, oriented_cloud, poisson_proxy
 from reconstruct.rectify import rectify_pair
 from reconstruct.sfm import map_reconstruction, pose_prior_pairs, sfm_options, write_pose_priors
-from reconstruct.sfm_settings import COLMAP_LOCAL_BA
+from reconstruct.sfm_settings import COLMAP_ABS_POSE, COLMAP_LOCAL_BA
 from reconstruct.timing import stage_time
 from reconstruct.workspace import View, prepare_workspace, select_partners, write_maps
 from scene.base import Box, MeshPart, Scene
@@ -457,23 +457,28 @@ def synthetic_dataset(tmp_path: Path) -> tuple[Path, pycolmap.Reconstruction]:
     return database_path, truth
 
 
-def test_mapping_and_alignment_on_a_synthetic_dataset(tmp_path):
-    """pycolmap.synthesize_dataset -> mapper -> similarity to noisy GNSS -> pose errors."""
-    database_path, truth = synthetic_dataset(tmp_path)
+def synthetic_flight(image_dir: Path, truth: pycolmap.Reconstruction) -> Flight:
+    """The true poses of ``synthetic_dataset``'s images as a Flight (image id order)."""
     names, rotations, translations = [], [], []
     for image_id in sorted(truth.reg_image_ids()):
         image = truth.image(image_id)
         names.append(image.name)
         rotations.append(image.cam_from_world().rotation.matrix())
         translations.append(np.asarray(image.cam_from_world().translation))
-    flight = Flight(
-        tmp_path,
+    return Flight(
+        image_dir,
         Intrinsics(1024, 768, 60.0),
         tuple(names),
         np.array(rotations),
         np.array(translations),
         ("test",) * len(names),
     )
+
+
+def test_mapping_and_alignment_on_a_synthetic_dataset(tmp_path):
+    """pycolmap.synthesize_dataset -> mapper -> similarity to noisy GNSS -> pose errors."""
+    database_path, truth = synthetic_dataset(tmp_path)
+    flight = synthetic_flight(tmp_path, truth)
     sigma = 0.005 * float(np.ptp(flight.positions, axis=0).max())  # GNSS noise: 0.5 % of the extent
     gnss = simulate_gnss(flight.positions, sigma, seed=1)
     gnss_error_median = float(np.median(np.linalg.norm(gnss - flight.positions, axis=1)))
@@ -505,6 +510,46 @@ def test_mapping_and_alignment_on_a_synthetic_dataset(tmp_path):
     assert deregister_gnss_outliers(rec, flight.names, moved, threshold) == [flight.names[7]]
     assert rec.num_reg_images() == 29
     assert flight.names[7] not in {rec.image(i).name for i in rec.reg_image_ids()}
+
+
+def test_a_weakly_linked_image_registers_at_the_survey_threshold(tmp_path):
+    """The last of 30 synthetic images keeps verified matches for only 20 of its keypoints (a close
+    wall view linked to the views above it by a few SIFT inliers): at COLMAP's 30 inliers it stays
+    out of the model, at the default 10 it registers where it was taken."""
+    database_path, truth = synthetic_dataset(tmp_path)
+    weak = max(truth.reg_image_ids())
+    with pycolmap.Database.open(database_path) as db:
+        for other in truth.reg_image_ids():
+            if other == weak:
+                continue
+            geometry = db.read_two_view_geometry(other, weak)
+            matches = np.asarray(geometry.inlier_matches)
+            geometry.inlier_matches = matches[matches[:, 1] < 20]
+            db.delete_two_view_geometry(other, weak)
+            db.delete_matches(other, weak)
+            db.write_matches(other, weak, geometry.inlier_matches)
+            db.write_two_view_geometry(other, weak, geometry)
+    flight = synthetic_flight(tmp_path, truth)
+    sigma = 0.001 * float(np.ptp(flight.positions, axis=0).max())
+    colmap = {f"sfm.mapping.{k}": v for k, v in COLMAP_ABS_POSE.items()}
+    registered = {}
+    for label, overrides in (("colmap", colmap), ("default", {})):
+        cfg = reconstruct_cfg(**{"sfm.mapping.use_prior_position": False, **overrides})
+        models = map_reconstruction(database_path, tmp_path, sfm_options(cfg.sfm, seed=0, deterministic=True))
+        registered[label] = weak in set(models[0].reg_image_ids())
+        if label == "default":
+            assert models[0].num_reg_images() == 30
+            align_to_gnss(models[0], flight.names, flight.positions, sigma, cfg.align, seed=0)
+            errors = pose_errors(models[0], flight)
+            # The synthetic matches are exact: every camera, the weak one too, lands on its pose.
+            assert errors["position_error_max_m"] < 1e-3 * float(np.ptp(flight.positions, axis=0).max())
+            assert errors["rotation_error_max_deg"] < 0.05
+    assert registered == {"colmap": False, "default": True}
+    # P3P needs 4 points; a share is a fraction.
+    with pytest.raises(ValueError, match="abs_pose_min_num_inliers must be >= 4"):
+        sfm_options(reconstruct_cfg(**{"sfm.mapping.abs_pose_min_num_inliers": 3}).sfm)
+    with pytest.raises(ValueError, match="abs_pose_min_inlier_ratio must be"):
+        sfm_options(reconstruct_cfg(**{"sfm.mapping.abs_pose_min_inlier_ratio": 0.0}).sfm)
 
 
 @pytest.fixture(scope="module")
@@ -887,7 +932,7 @@ def test_reconstruct_flight_reuses_unchanged_outputs(box_flight, box_reconstruct
     assert flight_content_key(box_flight, flight, reconstruct_cfg(**{budget: 0.04}), 0) != key
     # A mapper setting added after the records: at COLMAP's own value it leaves the key alone.
     rounds = "sfm.mapping.global_ba_max_refinements"
-    colmap_local = {f"sfm.mapping.{k}": v for k, v in COLMAP_LOCAL_BA.items()}
+    colmap_local = {f"sfm.mapping.{k}": v for k, v in {**COLMAP_LOCAL_BA, **COLMAP_ABS_POSE}.items()}
     keys = {
         n: flight_content_key(box_flight, flight, reconstruct_cfg(**{rounds: n, **colmap_local}), 0)
         for n in (1, 2, 5)
@@ -895,10 +940,10 @@ def test_reconstruct_flight_reuses_unchanged_outputs(box_flight, box_reconstruct
     assert len(set(keys.values())) == 3
     without = reconstruct_cfg()
     without.sfm.mapping.pop("global_ba_max_refinements")
-    for local in COLMAP_LOCAL_BA:
+    for local in (*COLMAP_LOCAL_BA, *COLMAP_ABS_POSE):
         without.sfm.mapping.pop(local)
     assert flight_content_key(box_flight, flight, without, 0) == keys[5]
-    # The lighter local BA of the defaults is a new key.
+    # The lighter local BA and the survey registration threshold of the defaults make a new key.
     assert flight_content_key(box_flight, flight, reconstruct_cfg(), 0) != keys[5]
 
 
