@@ -17,7 +17,10 @@ point's depth in that view and its normal within ``max_normal_error``. A pixel c
 measured depths along that ray (each neighbour's: where the ray meets the tangent plane of its
 measured point and normal) weighted by each measurement's precision: the stereo model's
 ``1 / sigma_z^2`` with ``sigma_z ~ z^2 / B`` (z the depth in the measuring view, B its stereo
-baseline), so a far or narrow-baseline view counts less than a close, wide one. The confirming
+baseline), so a far or narrow-baseline view counts less than a close, wide one; with
+``slant_window_px`` above 0 a measurement's variance also holds the window's depth spread on a
+surface slanted to its ray (``reconstruct.stereo_noise.slant_depth_sigma``), so a grazing view counts
+less than a frontal one at the same depth and baseline. The confirming
 pixels are marked used and seed no point of their own. Points are whole rays of the depth maps,
 never averaged across the surface, and every view is handled with its neighbours only, so memory
 stays at a few views whatever the flight's size, and the result is the same on any thread count.
@@ -33,7 +36,7 @@ import cv2
 import numpy as np
 
 from reconstruct.depth_filter import project
-from reconstruct.stereo_noise import stereo_depth_sigma
+from reconstruct.stereo_noise import slant_depth_sigma, stereo_depth_sigma
 from reconstruct.workspace import read_maps
 
 # What ``fuse_along_rays`` returns for every fused point.
@@ -93,6 +96,7 @@ def fuse_along_rays(
     min_pixels = int(cfg["min_num_pixels"])
     rel_tol = float(cfg["max_depth_error"])
     min_cos = math.cos(math.radians(float(cfg["max_normal_error"])))
+    slant_px = float(cfg.get("slant_window_px", 0.0))
     used = {name: np.zeros((views[name].height, views[name].width), bool) for name in names}
     cache = _MapCache(workspace, 2 * n_neighbours + 2)
     out: dict[str, list[np.ndarray]] = {key: [] for key in CLOUD_FIELDS}
@@ -108,7 +112,8 @@ def fuse_along_rays(
         world_rays = rays @ ref.rotation  # world directions of unit camera depth
         points = ref.center + world_rays * z_ref[:, None]
         n_ref_world = normals[rows, cols].astype(np.float64) @ ref.rotation
-        weight_ref = _precision(z_ref, ref.K[0, 0], baselines.get(name, 1.0))
+        cos_ref = _cos_incidence(world_rays, n_ref_world) if slant_px > 0 else None
+        weight_ref = _precision(z_ref, ref.K[0, 0], baselines.get(name, 1.0), cos_ref, slant_px)
         weighted = weight_ref * z_ref
         total = weight_ref.copy()
         support = np.ones(len(rows), np.int32)
@@ -140,7 +145,14 @@ def fuse_along_rays(
             grazing = np.abs(facing) < GRAZING_COS * np.linalg.norm(ray, axis=1)
             with np.errstate(divide="ignore", invalid="ignore"):
                 t = np.where(grazing, foot, np.einsum("ij,ij->i", offset, n_other_world) / facing)
-            w = _precision(measured[agree].astype(np.float64), view.K[0, 0], baselines.get(other, 1.0))
+            cos_other = _cos_incidence(other_points - view.center, n_other_world) if slant_px > 0 else None
+            w = _precision(
+                measured[agree].astype(np.float64),
+                view.K[0, 0],
+                baselines.get(other, 1.0),
+                cos_other,
+                slant_px,
+            )
             weighted[idx] += w * t
             total[idx] += w
             support[idx] += 1
@@ -224,9 +236,23 @@ def back_project_pixels(view, cols: np.ndarray, rows: np.ndarray, depth: np.ndar
     return view.center + (rays * np.asarray(depth, np.float64)[:, None]) @ view.rotation
 
 
-def _precision(depth: np.ndarray, focal_px: float, baseline_m: float) -> np.ndarray:
-    """The stereo model's 1 / sigma_z^2 (1/m^2) at one pixel of disparity noise (z, B in metres)."""
-    return stereo_depth_sigma(np.maximum(depth, 1e-6), focal_px, baseline_m, 1.0) ** -2
+def _precision(
+    depth: np.ndarray, focal_px: float, baseline_m: float, cos_incidence: np.ndarray | None, slant_px: float
+) -> np.ndarray:
+    """1 / sigma^2 (1/m^2) of depth measurements (z, B in metres): the stereo model's sigma_z at one
+    pixel of disparity noise and, for ``slant_px`` > 0, the window's spread on a slanted surface."""
+    z = np.maximum(depth, 1e-6)
+    variance = stereo_depth_sigma(z, focal_px, baseline_m, 1.0) ** 2
+    if slant_px > 0:
+        variance = variance + slant_depth_sigma(z, focal_px, cos_incidence, slant_px) ** 2
+    return 1.0 / variance
+
+
+def _cos_incidence(rays: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """|cos| of the angle between each ray (N, 3, any length) and its surface normal (N, 3)."""
+    dot = np.abs(np.einsum("ij,ij->i", rays, normals))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.nan_to_num(dot / (np.linalg.norm(rays, axis=1) * np.linalg.norm(normals, axis=1)))
 
 
 def _colours(workspace: Path, name: str, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:

@@ -286,3 +286,74 @@ def test_normals_off_by_20_deg_confirm_each_other_at_the_default_tolerance(tmp_p
     # footprint is fused.
     colmap = fused_points_with_one_tilted_normal_map(tmp_path, 10.0, 20.0)
     assert colmap == pytest.approx(240 * (320 - 27.7), rel=0.005)
+
+
+# ----------------------------------------------------------------------------- slanted surfaces
+
+
+def test_the_slant_sigma_is_the_window_depth_spread():
+    """A 3 px window at 20 m, f 1000 px, on a surface 60 deg to the ray: 3 x 20 / 1000 x tan 60."""
+    from reconstruct.stereo_noise import slant_depth_sigma
+
+    assert slant_depth_sigma(20.0, 1000.0, 0.5, 3.0) == pytest.approx(0.06 * math.sqrt(3.0), rel=1e-12)
+    assert slant_depth_sigma(20.0, 1000.0, 1.0, 3.0) == 0.0
+    # Past 84 deg the tangent plane is not trusted: the spread stops at tan(acos 0.1) = 9.95.
+    assert slant_depth_sigma(20.0, 1000.0, 0.0, 3.0) == pytest.approx(0.06 * math.sqrt(0.99) / 0.1)
+
+
+def fused_height_error_of_a_grazing_pixel(tmp_path: Path, slant_px: float) -> tuple[float, float]:
+    """A grazing view of the ground (6 m up, 20 deg down, its depth 0.5 % long) and three nadir views
+    20 m up, exact; the ground point under the grazing view's pixel (160, 120) is fused along that
+    pixel's ray. Returns the fused point's height (m) and the one the weights predict by hand."""
+    from reconstruct.fusion_rays import fuse_along_rays
+
+    workspace = tmp_path / f"slant_{slant_px}"
+    grazing = opencv_view("000000.png", [-20.0, 0.0, 6.0, 0.0, -20.0])
+    nadirs = [
+        opencv_view(f"00000{i + 1}.png", [x, 0.0, 20.0, 90.0, -90.0])
+        for i, x in enumerate((-4.0, -3.0, -2.0))
+    ]
+    views = {v.name: v for v in [grazing, *nadirs]}
+    for view in views.values():
+        depth, normals = oracle_of_ground(view, 1.0, 0.0)
+        write_maps(workspace, view.name, depth * (1.005 if view is grazing else 1.0), normals)
+    names = sorted(views)
+    neighbours = {n: [m for m in names if m != n] for n in names}
+    cfg = {"ray_neighbours": 12, "min_num_pixels": 3, "max_depth_error": 0.01, "max_normal_error": 30.0}
+    cloud = fuse_along_rays(
+        workspace, names, views, neighbours, dict.fromkeys(names, 5.0), cfg | {"slant_window_px": slant_px}
+    )
+    ray = np.array([160.0, 120.0, 1.0]) @ np.linalg.inv(grazing.K).T @ grazing.rotation
+    t_true = -grazing.center[2] / ray[2]
+    truth = grazing.center + t_true * ray
+    direction = (cloud["points"] - grazing.center) / np.linalg.norm(cloud["points"] - grazing.center, axis=1)[
+        :, None
+    ]
+    fused = cloud["points"][np.argmax(direction @ (ray / np.linalg.norm(ray)))]
+    # By hand: precision 1 / ((z^2 / (f B))^2 + (w z tan(theta) / f)^2) at B = 5 m, z the depth the
+    # view measured: the grazing view t_true x 1.005; each nadir view exactly 20 m, from its own
+    # angle to the point.
+    f = grazing.K[0, 0]
+
+    def precision(z, cos):
+        return 1.0 / ((z * z / (f * 5.0)) ** 2 + (slant_px * z / f * math.sqrt(1 - cos * cos) / cos) ** 2)
+
+    cos_grazing = abs(ray[2]) / np.linalg.norm(ray)
+    w_grazing = precision(1.005 * t_true, cos_grazing)
+    w_nadirs = sum(precision(20.0, 20.0 / np.linalg.norm(truth - v.center)) for v in nadirs)
+    share = w_grazing / (w_grazing + w_nadirs)
+    hand_height = 0.005 * t_true * share * ray[2]
+    return float(fused[2]), float(hand_height)
+
+
+def test_a_grazing_view_weighs_less_on_the_ground_with_the_slant_term(tmp_path):
+    # Without the term the grazing view, nearer (17.5 against 20 m), outweighs each nadir view
+    # (precision ~ z^-4): 1.69 of 4.69; its 0.5 % error (8.8 cm along the ray) leaves the point
+    # 1.08 cm under the ground. A 3 px window spreads its depth by 3 x 17.5 / 277 x tan 70 = 52 cm
+    # against the stereo model's 22 cm, so it weighs 0.08 of the whole and the point is 0.24 cm under.
+    former, former_hand = fused_height_error_of_a_grazing_pixel(tmp_path, 0.0)
+    slant, slant_hand = fused_height_error_of_a_grazing_pixel(tmp_path, 3.0)
+    assert former == pytest.approx(former_hand, rel=0.01, abs=2e-5)
+    assert slant == pytest.approx(slant_hand, rel=0.01, abs=2e-5)
+    assert former_hand == pytest.approx(-0.0108, abs=0.0001)
+    assert slant_hand == pytest.approx(-0.0024, abs=0.0001)

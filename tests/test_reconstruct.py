@@ -958,6 +958,7 @@ def test_dense_settings_added_after_the_records_leave_legacy_keys_alone(box_flig
         "dense.fusion.support_share": 0.0,
         "dense.partner_weights": "equal",
         "dense.fusion.conditioning_ratio": 0.0,
+        "dense.fusion.slant_window_px": 0.0,
     }
     explicit = reconstruct_cfg(**legacy)
     before = reconstruct_cfg(**legacy)
@@ -965,7 +966,7 @@ def test_dense_settings_added_after_the_records_leave_legacy_keys_alone(box_flig
         before.dense.pop(key)
     for key in ("method", "ray_neighbours", "ray_voxel_m", "support_share", "support_radius_m"):
         before.dense.fusion.pop(key)
-    for key in ("conditioning_ratio", "conditioning_cell_m"):
+    for key in ("conditioning_ratio", "conditioning_cell_m", "slant_window_px"):
         before.dense.fusion.pop(key)
     key = flight_content_key(box_flight, flight, before, 0)
     assert flight_content_key(box_flight, flight, explicit, 0) == key
@@ -984,7 +985,9 @@ def test_dense_settings_added_after_the_records_leave_legacy_keys_alone(box_flig
     }
     conditioned = {**legacy, "dense.fusion.method": "rays", "dense.fusion.conditioning_ratio": 2.0}
     keys.add(flight_content_key(box_flight, flight, reconstruct_cfg(**conditioned), 0))
-    assert len(keys) == 6 and flight_content_key(box_flight, flight, before, 0) not in keys
+    slanted = {**conditioned, "dense.fusion.slant_window_px": 3.0}
+    keys.add(flight_content_key(box_flight, flight, reconstruct_cfg(**slanted), 0))
+    assert len(keys) == 7 and flight_content_key(box_flight, flight, before, 0) not in keys
 
 
 def test_a_run_killed_after_sfm_resumes_from_its_sparse_model(box_flight, box_reconstruction, tmp_path):
