@@ -752,7 +752,7 @@ def dense_reconstruct(
     output_ply = Path(out_dir) / "dense.ply"
     report = FusionReport(0, 0, None)
     if names:
-        report = _fuse_atomic(workspace, output_ply, cfg, names, deterministic)
+        report = _fuse_atomic(workspace, output_ply, fusion_config(backend, cfg), names, deterministic)
     return {
         "backend": backend,
         "dense_time_s": time.perf_counter() - start,
@@ -762,6 +762,16 @@ def dense_reconstruct(
         "fusion_n_chunks": report.n_chunks,
         "fusion_max_memory_gb": report.max_memory_gb,
     }
+
+
+def fusion_config(backend: str, cfg: Mapping) -> Mapping:
+    """The dense settings ``backend``'s maps are fused with. The oracle's depth comes from no
+    matching window, and its noise is the stereo model's alone (``reconstruct.oracle``), so fusion
+    weighs it by that model: ``fusion.slant_window_px`` 0."""
+    fusion = cfg["fusion"]
+    if backend != "oracle" or not float(fusion.get("slant_window_px", 0.0)):
+        return cfg
+    return {**cfg, "fusion": {**fusion, "slant_window_px": 0.0}}
 
 
 def _fuse_atomic(workspace: Path, output_ply: Path, cfg: Mapping, names, deterministic: bool) -> FusionReport:

@@ -11,7 +11,9 @@ still count), and the depth gets stereo noise of the pair the view would use:
 combined depth map, ``reconstruct.workspace.stereo_baselines``: its partners' as the real back-end
 combines them, metres). Normals are the ground truth's, turned to face the camera. The maps
 are fused by the same fusion as the real back-end, so the fused cloud scores what the plan allows
-once matching is perfect. A ray-cast per view costs a fraction of one SGBM pair.
+once matching is perfect; its weights are the stereo model's alone, since no matching window spans
+a slanted surface here (``reconstruct.dense.fusion_config``). A ray-cast per view costs a
+fraction of one SGBM pair.
 """
 
 from __future__ import annotations

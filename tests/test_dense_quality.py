@@ -357,3 +357,16 @@ def test_a_grazing_view_weighs_less_on_the_ground_with_the_slant_term(tmp_path):
     assert slant == pytest.approx(slant_hand, rel=0.01, abs=2e-5)
     assert former_hand == pytest.approx(-0.0108, abs=0.0001)
     assert slant_hand == pytest.approx(-0.0024, abs=0.0001)
+
+
+def test_the_oracle_is_fused_by_the_stereo_model_alone():
+    # Its depth has the stereo model's noise only, and no matching window: no slant term.
+    from reconstruct.dense import fusion_config
+
+    cfg = reconstruct_cfg(**{"dense.fusion.slant_window_px": 3.0}).dense
+    oracle = fusion_config("oracle", cfg)
+    assert oracle["fusion"]["slant_window_px"] == 0.0
+    assert {k: v for k, v in oracle["fusion"].items() if k != "slant_window_px"} == {
+        k: v for k, v in cfg["fusion"].items() if k != "slant_window_px"
+    }
+    assert fusion_config("cpu", cfg)["fusion"]["slant_window_px"] == 3.0
