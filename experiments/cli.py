@@ -22,6 +22,7 @@ COMMANDS = {
     "viewer": "experiments.viewer",
     "photo-roundtrip": "experiments.photo_roundtrip",
     "oracle-gap": "experiments.oracle_gap",
+    "accuracy-sources": "experiments.accuracy_sources",
     "cell-pairs": "experiments.cell_pairs",
     "study-plan": "experiments.study_plan",
 }

@@ -42,6 +42,7 @@ class FusionSettings:
     conditioning_ratio: float = setting(0.0, low=0)  # reconstruct.fusion_rays.well_conditioned; 0: off
     conditioning_cell_m: float = setting(0.05, above=0)
     slant_window_px: float = setting(0.0, low=0)  # reconstruct.stereo_noise.slant_depth_sigma; 0: off
+    gate_disparity_px: float = setting(0.0, low=0)  # reconstruct.fusion_rays._gate_claims; 0: off
     support_radius_m: float = setting(0.03, above=0)
 
     def __post_init__(self) -> None:

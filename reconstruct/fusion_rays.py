@@ -20,7 +20,9 @@ measured point and normal) weighted by each measurement's precision: the stereo 
 baseline), so a far or narrow-baseline view counts less than a close, wide one; with
 ``slant_window_px`` above 0 a measurement's variance also holds the window's depth spread on a
 surface slanted to its ray (``reconstruct.stereo_noise.slant_depth_sigma``), so a grazing view counts
-less than a frontal one at the same depth and baseline. The confirming
+less than a frontal one at the same depth and baseline. With ``gate_disparity_px`` above 0, a
+measurement farther from that mean than so many pixels of its own disparity noise is dropped and the
+rest fused again (``_gate_claims``). The confirming
 pixels are marked used and seed no point of their own. Points are whole rays of the depth maps,
 never averaged across the surface, and every view is handled with its neighbours only, so memory
 stays at a few views whatever the flight's size, and the result is the same on any thread count.
@@ -97,6 +99,7 @@ def fuse_along_rays(
     rel_tol = float(cfg["max_depth_error"])
     min_cos = math.cos(math.radians(float(cfg["max_normal_error"])))
     slant_px = float(cfg.get("slant_window_px", 0.0))
+    gate_px = float(cfg.get("gate_disparity_px", 0.0))
     used = {name: np.zeros((views[name].height, views[name].width), bool) for name in names}
     cache = _MapCache(workspace, 2 * n_neighbours + 2)
     out: dict[str, list[np.ndarray]] = {key: [] for key in CLOUD_FIELDS}
@@ -156,7 +159,9 @@ def fuse_along_rays(
             weighted[idx] += w * t
             total[idx] += w
             support[idx] += 1
-            claims.append((other, idx, r, c))
+            claims.append((other, idx, r, c, t, w))
+        if gate_px > 0:
+            claims = _gate_claims(claims, weighted, total, support, z_ref, weight_ref, gate_px)
         keep = support >= min_pixels
         fused_depth = weighted[keep] / total[keep]
         out["points"].append(ref.center + world_rays[keep] * fused_depth[:, None])
@@ -165,7 +170,7 @@ def fuse_along_rays(
         out["support"].append(support[keep])
         out["depth_sigma"].append(1.0 / np.sqrt(total[keep]))
         used[name][rows, cols] = True
-        for other, idx, r, c in claims:
+        for other, idx, r, c, _, _ in claims:
             fused = keep[idx]
             used[other][r[fused], c[fused]] = True
     if not out["points"]:
@@ -174,6 +179,32 @@ def fuse_along_rays(
             "depth_sigma": np.zeros(0),
         }
     return {key: np.concatenate(value) for key, value in out.items()}
+
+
+def _gate_claims(claims, weighted, total, support, z_ref, weight_ref, gate_px):
+    """Drop, in place, every measurement farther from its point's fused depth than ``gate_px``
+    pixels of its own disparity noise (``1 / sqrt(w)`` is its sigma at one pixel), the reference's
+    own included, and re-sum the rest. The agreement band (``max_depth_error``, 1 % of the depth:
+    25 cm at 25 m) is wide enough to let a measurement many sigmas off join the mean, and the more
+    views a flight has, the more of those a point collects. Returns the claims that stay."""
+    fused = weighted / total
+    weighted[:] = 0.0
+    total[:] = 0.0
+    support[:] = 0
+    ref_ok = np.abs(z_ref - fused) * np.sqrt(weight_ref) <= gate_px
+    weighted[ref_ok] += weight_ref[ref_ok] * z_ref[ref_ok]
+    total[ref_ok] += weight_ref[ref_ok]
+    support[ref_ok] += 1
+    kept = []
+    for other, idx, r, c, t, w in claims:
+        ok = np.abs(t - fused[idx]) * np.sqrt(w) <= gate_px
+        idx, r, c, t, w = idx[ok], r[ok], c[ok], t[ok], w[ok]
+        weighted[idx] += w * t
+        total[idx] += w
+        support[idx] += 1
+        kept.append((other, idx, r, c, t, w))
+    total[total == 0] = np.inf  # no measurement left: support 0, dropped; no division by zero
+    return kept
 
 
 def well_conditioned(cloud: Mapping[str, np.ndarray], cell_m: float, ratio: float) -> dict[str, np.ndarray]:

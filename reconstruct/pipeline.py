@@ -116,6 +116,7 @@ def _in_effect(section: str, value, fusion_bytes: float = 0.0):
         fusion = _without(fusion, SUPPORT_FILTER_KEYS, not fusion.get("support_share"))
         fusion = _without(fusion, CONDITIONING_KEYS, not fusion.get("conditioning_ratio"))
         fusion = _without(fusion, ("slant_window_px",), not fusion.get("slant_window_px"))
+        fusion = _without(fusion, ("gate_disparity_px",), not fusion.get("gate_disparity_px"))
         value = _without(value, REFERENCE_VIEWS_KEYS, value.get(REFERENCE_VIEWS_KEYS[0]) is None)
         # The oracle's noise moves no other back-end's cloud.
         value = _without(value, ("oracle",), value.get("backend") != "oracle")

@@ -359,6 +359,46 @@ def test_a_grazing_view_weighs_less_on_the_ground_with_the_slant_term(tmp_path):
     assert slant_hand == pytest.approx(-0.0024, abs=0.0001)
 
 
+def fused_height_with_one_long_view(tmp_path: Path, gate_px: float) -> float:
+    """Five nadir views 20 m up, 1 m apart; the fourth measured the ground 0.8 % long (16 cm, inside
+    fusion's 1 % band), the others exactly. Returns the height (m) of the point fused on the first
+    view's centre pixel, each view's stereo baseline 50 m (sigma 2.9 cm at one pixel)."""
+    from reconstruct.fusion_rays import fuse_along_rays
+
+    workspace = tmp_path / f"gate_{gate_px}"
+    views = {
+        v.name: v
+        for v in (opencv_view(f"00000{i}.png", [float(i), 0.0, 20.0, 90.0, -90.0]) for i in range(5))
+    }
+    for i, view in enumerate(views.values()):
+        depth, normals = oracle_of_ground(view, 1.0, 0.0)
+        write_maps(workspace, view.name, depth * (1.008 if i == 3 else 1.0), normals)
+    names = sorted(views)
+    neighbours = {n: [m for m in names if m != n] for n in names}
+    cfg = {"ray_neighbours": 12, "min_num_pixels": 3, "max_depth_error": 0.01, "max_normal_error": 30.0}
+    cloud = fuse_along_rays(
+        workspace, names, views, neighbours, dict.fromkeys(names, 50.0), cfg | {"gate_disparity_px": gate_px}
+    )
+    reference = views[names[0]]
+    ray = np.array([160.0, 120.0, 1.0]) @ np.linalg.inv(reference.K).T @ reference.rotation
+    direction = cloud["points"] - reference.center
+    direction /= np.linalg.norm(direction, axis=1)[:, None]
+    return float(cloud["points"][np.argmax(direction @ (ray / np.linalg.norm(ray))), 2])
+
+
+def test_the_gate_drops_a_measurement_many_sigmas_from_the_fused_depth(tmp_path):
+    # The long view's point lies 16 cm under the ground (nadir: depth x 1.008 at 20 m), and so does
+    # its tangent plane. Weighted by (f B / z^2)^2, it counts 1.008^-4 of an exact view: without the
+    # gate the point sits 16 cm x w / (4 + w) under the ground. Its first fused depth is ~3.2 cm
+    # long: the exact views are 1.1 sigma from it, the long one 4.4 sigma. A 3 px gate drops the
+    # long one, and the point is fused from the exact four.
+    w = 1.008**-4
+    assert fused_height_with_one_long_view(tmp_path, 0.0) == pytest.approx(-0.16 * w / (4 + w), rel=0.01)
+    assert fused_height_with_one_long_view(tmp_path, 3.0) == pytest.approx(0.0, abs=1e-6)
+    # A gate wider than the long view's 4.4 sigma keeps it.
+    assert fused_height_with_one_long_view(tmp_path, 5.0) == pytest.approx(-0.16 * w / (4 + w), rel=0.01)
+
+
 def test_the_oracle_is_fused_by_the_stereo_model_alone():
     # Its depth has the stereo model's noise only, and no matching window: no slant term.
     from reconstruct.dense import fusion_config

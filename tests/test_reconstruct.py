@@ -959,6 +959,7 @@ def test_dense_settings_added_after_the_records_leave_legacy_keys_alone(box_flig
         "dense.partner_weights": "equal",
         "dense.fusion.conditioning_ratio": 0.0,
         "dense.fusion.slant_window_px": 0.0,
+        "dense.fusion.gate_disparity_px": 0.0,
     }
     explicit = reconstruct_cfg(**legacy)
     before = reconstruct_cfg(**legacy)
@@ -966,7 +967,7 @@ def test_dense_settings_added_after_the_records_leave_legacy_keys_alone(box_flig
         before.dense.pop(key)
     for key in ("method", "ray_neighbours", "ray_voxel_m", "support_share", "support_radius_m"):
         before.dense.fusion.pop(key)
-    for key in ("conditioning_ratio", "conditioning_cell_m", "slant_window_px"):
+    for key in ("conditioning_ratio", "conditioning_cell_m", "slant_window_px", "gate_disparity_px"):
         before.dense.fusion.pop(key)
     key = flight_content_key(box_flight, flight, before, 0)
     assert flight_content_key(box_flight, flight, explicit, 0) == key
@@ -987,7 +988,9 @@ def test_dense_settings_added_after_the_records_leave_legacy_keys_alone(box_flig
     keys.add(flight_content_key(box_flight, flight, reconstruct_cfg(**conditioned), 0))
     slanted = {**conditioned, "dense.fusion.slant_window_px": 3.0}
     keys.add(flight_content_key(box_flight, flight, reconstruct_cfg(**slanted), 0))
-    assert len(keys) == 7 and flight_content_key(box_flight, flight, before, 0) not in keys
+    gated = {**conditioned, "dense.fusion.gate_disparity_px": 3.0}
+    keys.add(flight_content_key(box_flight, flight, reconstruct_cfg(**gated), 0))
+    assert len(keys) == 8 and flight_content_key(box_flight, flight, before, 0) not in keys
 
 
 def test_a_run_killed_after_sfm_resumes_from_its_sparse_model(box_flight, box_reconstruction, tmp_path):

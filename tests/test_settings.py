@@ -52,6 +52,8 @@ def composed(*overrides: str):
         (["reconstruct.dense.fusion.max_memory_gb=0.01"], "max_memory_gb=0.01 holds fewer than two views"),
         (["reconstruct.dense.fusion.max_memory_gb=lots"], "reconstruct.dense.fusion.max_memory_gb"),
         (["reconstruct.dense.fusion.method=voxels"], "reconstruct.dense.fusion.method"),
+        (["reconstruct.dense.fusion.gate_disparity_px=-1"], "reconstruct.dense.fusion.gate_disparity_px"),
+        (["reconstruct.dense.fusion.gate_disparity_px=nan"], "reconstruct.dense.fusion.gate_disparity_px"),
         (["survey.flight_order=alphabetical"], "survey.flight_order"),
     ],
 )
