@@ -670,8 +670,17 @@ def _support_kept(cloud: Mapping, cfg: Mapping) -> np.ndarray | None:
     return keep
 
 
+# Open3D's binary PLY row of a fused point: position and normal as doubles, colour as bytes.
+PLY_ROW_BYTES = 3 * 8 + 3 * 8 + 3
+PLY_HEADER_MAX_BYTES = 4096
+
+
 def _write_cloud(path: Path, cloud: Mapping, keep: np.ndarray | None) -> int:
-    """Write points, normals and colours (``keep`` of them, or all) as a PLY; return the count."""
+    """Write points, normals and colours (``keep`` of them, or all) as a PLY; return the count.
+
+    Raises OSError, leaving no file, when the disk has not the room or the file came out short:
+    Open3D reports success on a PLY the full disk cut off, and evaluation then fails on it later.
+    """
     import open3d as o3d
 
     keep = slice(None) if keep is None else keep
@@ -679,8 +688,15 @@ def _write_cloud(path: Path, cloud: Mapping, keep: np.ndarray | None) -> int:
     out.points = o3d.utility.Vector3dVector(cloud["points"][keep])
     out.normals = o3d.utility.Vector3dVector(cloud["normals"][keep])
     out.colors = o3d.utility.Vector3dVector(cloud["colors"][keep])
-    if not o3d.io.write_point_cloud(str(path), out):
-        raise OSError(f"{path}: could not write the fused cloud")
+    need = len(out.points) * PLY_ROW_BYTES
+    free = shutil.disk_usage(Path(path).parent).free
+    if free < need + PLY_HEADER_MAX_BYTES:
+        raise OSError(f"{path}: the fused cloud needs {need / 1e9:.2f} GB, the disk has {free / 1e9:.2f} GB")
+    written = o3d.io.write_point_cloud(str(path), out)
+    size = Path(path).stat().st_size if Path(path).exists() else 0
+    if not written or not need <= size <= need + PLY_HEADER_MAX_BYTES:
+        Path(path).unlink(missing_ok=True)
+        raise OSError(f"{path}: wrote {size} bytes of the fused cloud's {need} and a header (disk full?)")
     return len(out.points)
 
 

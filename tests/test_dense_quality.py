@@ -410,3 +410,39 @@ def test_the_oracle_is_fused_by_the_stereo_model_alone():
         k: v for k, v in cfg["fusion"].items() if k != "slant_window_px"
     }
     assert fusion_config("cpu", cfg)["fusion"]["slant_window_px"] == 3.0
+
+
+# ----------------------------------------------------------------------------- writing the cloud
+
+
+def test_a_cloud_the_disk_cannot_hold_leaves_no_file(tmp_path, monkeypatch):
+    import collections
+
+    import open3d as o3d
+
+    from reconstruct import dense
+
+    rng = np.random.default_rng(0)
+    cloud = {"points": rng.normal(size=(1000, 3)), "normals": np.tile([0.0, 0.0, 1.0], (1000, 1))}
+    cloud["colors"] = np.full((1000, 3), 0.5)
+    written = tmp_path / "dense.ply"
+    assert dense._write_cloud(written, cloud, None) == 1000
+    # 51 bytes a point (six doubles, three bytes) and Open3D's header.
+    assert 1000 * 51 < written.stat().st_size < 1000 * 51 + 400
+    # Too little room: refused before writing.
+    usage = collections.namedtuple("usage", "total used free")
+    monkeypatch.setattr(dense.shutil, "disk_usage", lambda _: usage(10**9, 10**9 - 20_000, 20_000))
+    with pytest.raises(OSError, match=r"full\.ply: the fused cloud needs 0\.00 GB, the disk has 0\.00 GB"):
+        dense._write_cloud(tmp_path / "full.ply", cloud, None)
+    assert not (tmp_path / "full.ply").exists()
+    monkeypatch.undo()
+
+    # Open3D reports success on a file a full disk cut short: removed and refused.
+    def short_write(path, _cloud):
+        Path(path).write_bytes(b"ply\n" + b"\0" * 100)
+        return True
+
+    monkeypatch.setattr(o3d.io, "write_point_cloud", short_write)
+    with pytest.raises(OSError, match=r"short\.ply: wrote 104 bytes of the fused cloud's 51000"):
+        dense._write_cloud(tmp_path / "short.ply", cloud, None)
+    assert not (tmp_path / "short.ply").exists()
