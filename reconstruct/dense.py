@@ -120,6 +120,29 @@ def textured_pixels(gray: np.ndarray, window_px: int, min_std: float) -> np.ndar
     return np.sqrt(np.maximum(mean_sq - mean * mean, 0.0)) >= float(min_std)
 
 
+def sgbm_disparity(sgbm, left: np.ndarray, right: np.ndarray, mirror_pass: bool) -> np.ndarray:
+    """SGBM's disparity (px, float32; negative where it found no match) of rectified ``left``.
+
+    The 3-way mode aggregates its costs along paths that come from above only, so on a surface
+    whose disparity changes down the image it lags behind the change: a pair's depth comes out
+    0.1-0.35 px of disparity off, one way when the partner lies to the reference's right and the
+    other way when it lies to its left (rectification turns the images half round). With
+    ``mirror_pass`` the pair is matched once more upside down (rows reversed: epipolar lines and
+    disparities stay as they were, the paths now come from below) and the two maps are averaged
+    where both matched; where one did, its value is kept. On the tomb / Smith pairs this took the
+    median error on the ground from +-0.13-0.35 to 0.004-0.04 px for 1.7-1.9x the matching time.
+    """
+    disparity = sgbm.compute(left, right).astype(np.float32) / 16.0  # SGBM's fixed point: 1/16 px
+    if mirror_pass:
+        mirrored = sgbm.compute(np.ascontiguousarray(left[::-1]), np.ascontiguousarray(right[::-1]))
+        upside_down = mirrored[::-1].astype(np.float32) / 16.0
+        both = (disparity >= 0) & (upside_down >= 0)
+        only_mirrored = (disparity < 0) & (upside_down >= 0)
+        disparity = np.where(only_mirrored, upside_down, disparity)
+        disparity = np.where(both, 0.5 * (disparity + upside_down), disparity)
+    return disparity.astype(np.float32)
+
+
 def pair_depth(
     ref: View, src: View, ref_gray: np.ndarray, src_gray: np.ndarray, ref_points: np.ndarray, cfg: Mapping
 ) -> np.ndarray | None:
@@ -160,7 +183,7 @@ def pair_depth(
         speckleRange=int(scfg["speckle_range"]),
         mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
     )
-    disparity = sgbm.compute(left, right).astype(np.float32) / 16.0
+    disparity = sgbm_disparity(sgbm, left, right, bool(scfg.get("mirror_pass", False)))
     valid = disparity >= 0.0
     valid &= disparity + min_disp > 0.5
     # The matched pixel must lie inside the partner's image (SGBM happily matches the black border).

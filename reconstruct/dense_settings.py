@@ -23,6 +23,7 @@ class SgbmSettings:
     speckle_window_size: int = setting(low=0)
     speckle_range: int = setting(low=0)
     disp12_max_diff: int = setting()
+    mirror_pass: bool = setting(False)  # reconstruct.dense.sgbm_disparity: also match upside down, average
 
 
 @dataclass(frozen=True)

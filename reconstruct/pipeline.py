@@ -128,6 +128,9 @@ def _in_effect(section: str, value, fusion_bytes: float = 0.0):
         value = _without(value, rectify_keys, rectify_off)
         gc_off = not (value.get("geometric_consistency") or {}).get("min_views")
         value = _without(value, ("geometric_consistency",), gc_off)
+        sgbm = value.get("sgbm")
+        if isinstance(sgbm, dict):
+            value = {**value, "sgbm": _without(sgbm, ("mirror_pass",), not sgbm.get("mirror_pass"))}
         return {**value, "fusion": fusion}
     if section != "sfm" or not isinstance(value, dict) or not isinstance(value.get("mapping"), dict):
         return value
