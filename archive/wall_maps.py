@@ -44,7 +44,7 @@ def main() -> None:
     partners = select_partners(workspace, views, dense)
     mapped = sorted(n for n in views if (workspace / "stereo" / "depth_maps" / (n + DEPTH_SUFFIX)).exists())
     seen_by = np.zeros(len(samples), int)
-    pairs = []  # (incidence deg, distance m, held, triangulation deg, partner axis deg)
+    pairs = []  # (incidence deg, distance m, held, triangulation deg, partner axis deg, has a depth)
     for name in mapped:
         view = views[name]
         cam = (samples - view.center) @ view.rotation.T
@@ -79,13 +79,17 @@ def main() -> None:
         else:
             triangulation = np.full(len(seen), np.nan)
         incidence = np.degrees(np.arccos(cos_incidence[seen]))
-        pairs.append(np.stack([incidence, distance[seen], held, triangulation, np.full(len(seen), axis)], 1))
+        has_depth = np.isfinite(measured) & (measured > 0)
+        pairs.append(
+            np.stack([incidence, distance[seen], held, triangulation, np.full(len(seen), axis), has_depth], 1)
+        )
     pairs = np.concatenate(pairs)
     cloud = np.asarray(o3d.io.read_point_cloud(cloud_path).points)
     reconstructed = cKDTree(cloud).query(samples, k=1, distance_upper_bound=HELD_M)[0] <= HELD_M
     print(
         f"{len(samples)} wall samples, {len(mapped)} maps, {100 * reconstructed.mean():.1f} % "
-        f"reconstructed; maps hold {100 * pairs[:, 2].mean():.1f} % of the samples they see"
+        f"reconstructed; of the samples they see, maps have a depth at {100 * pairs[:, 5].mean():.1f} % "
+        f"and hold {100 * pairs[:, 2].mean():.1f} %"
     )
     for lo, hi in ((0, 3), (3, 5), (5, 7), (7, 10), (10, 10**6)):
         m = (seen_by >= lo) & (seen_by < hi)
