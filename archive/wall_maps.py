@@ -22,6 +22,7 @@ import trimesh
 from omegaconf import OmegaConf
 from scipy.spatial import cKDTree
 
+from reconstruct.depth_filter import project
 from reconstruct.workspace import DEPTH_SUFFIX, read_maps, read_views, select_partners
 from scene.enclosure import raycasting_scene
 
@@ -47,15 +48,12 @@ def main() -> None:
     pairs = []  # (incidence deg, distance m, held, triangulation deg, partner axis deg, has a depth)
     for name in mapped:
         view = views[name]
-        cam = (samples - view.center) @ view.rotation.T
-        pix = cam @ view.K.T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u, v = pix[:, 0] / pix[:, 2], pix[:, 1] / pix[:, 2]
+        u, v, z = project(samples, view.K, view.rotation, view.translation)
         to_view = view.center - samples
         distance = np.linalg.norm(to_view, axis=1)
         direction = to_view / distance[:, None]
         cos_incidence = np.einsum("ij,ij->i", direction, normals)
-        inside = (cam[:, 2] > 0) & (u >= 0) & (u <= view.width - 1) & (v >= 0) & (v <= view.height - 1)
+        inside = (z > 0) & (u >= 0) & (u <= view.width - 1) & (v >= 0) & (v <= view.height - 1)
         inside &= cos_incidence > np.cos(np.radians(MAX_INCIDENCE_DEG))
         idx = np.flatnonzero(inside)
         rays = np.concatenate([samples[idx] + 1e-3 * direction[idx], direction[idx]], 1).astype(np.float32)
@@ -64,7 +62,7 @@ def main() -> None:
         seen_by[seen] += 1
         depth, _ = read_maps(workspace, name)
         measured = depth[np.rint(v[seen]).astype(int), np.rint(u[seen]).astype(int)]
-        held = np.abs(measured - cam[seen, 2]) <= HELD_M
+        held = np.abs(measured - z[seen]) <= HELD_M
         others = partners.get(name, [])
         axes = [np.degrees(np.arccos(np.clip(view.forward @ views[o].forward, -1, 1))) for o in others]
         axis = np.median(axes) if others else np.nan
