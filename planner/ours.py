@@ -39,9 +39,10 @@ from planner.cmaes_refine import refine_clusters
 from planner.culling import cull
 from planner.heuristics import global_score
 from planner.objective import ObjectiveState
-from planner.ours_budget import fit_budget
+from planner.ours_budget import PartnerTerm, fit_budget
 from planner.ours_settings import OursSettings
 from planner.sampling import sample_surface, validate_proxy
+from planner.stereo_partners import partner_matrix
 from planner.trajectory import flight_length, order_viewpoints
 from planner.visibility import VisibilityModel
 from scene.camera import Intrinsics
@@ -50,15 +51,22 @@ from scene.plan import Plan, PlanningError
 
 def _yaml_defaults() -> dict:
     """``conf/planner/ours.yaml`` (the one place ours' settings and their reasons live), with the
-    shared target GSD taken from ``conf/config.yaml`` and the drone from ``conf/drone``; the config-only keys
+    shared target GSD taken from ``conf/config.yaml``, the drone from ``conf/drone`` and the dense
+    stage's partner test from ``conf/reconstruct``; the config-only keys
     (``planner.budget.CONFIG_KEYS``) dropped."""
     from omegaconf import OmegaConf
 
     conf = Path(__file__).resolve().parents[1] / "conf"
     survey = OmegaConf.load(conf / "config.yaml").survey
     drone = OmegaConf.load(conf / "drone" / "default.yaml")
+    reconstruct = OmegaConf.load(conf / "reconstruct" / "default.yaml")
     merged = OmegaConf.create(
-        {"survey": survey, "drone": drone, "ours": OmegaConf.load(conf / "planner" / "ours.yaml")}
+        {
+            "survey": survey,
+            "drone": drone,
+            "reconstruct": reconstruct,
+            "ours": OmegaConf.load(conf / "planner" / "ours.yaml"),
+        }
     )
     out = OmegaConf.to_container(merged.ours, resolve=True)
     return {k: v for k, v in out.items() if k not in CONFIG_KEYS}
@@ -427,9 +435,13 @@ def plan_with(
         final_state = ObjectiveState(
             det_params, n_points, mode="detail", points=points, point_weights=weights
         )
-        final_state.reset(cov_model.observe(vps))
+        unconstrained_obs = cov_model.observe(vps)
+        final_state.reset(unconstrained_obs)
+        rule = settings.partners
+        eligible = partner_matrix(unconstrained_obs.visible, unconstrained_obs.direction, vps, rule)
+        partners = PartnerTerm(eligible, rule.num_partners, rule.weight)
         kept, budget = fit_budget(
-            final_state, vps, kinds, settings.budget, settings.drone, takeoff, int(cfg["tsp_runs"])
+            final_state, vps, kinds, settings.budget, settings.drone, takeoff, int(cfg["tsp_runs"]), partners
         )
         # "unconstrained": what the objective asked for (after a fill: the filled plan, before the prune).
         budget |= {

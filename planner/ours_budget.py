@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from planner.objective import ObjectiveState
+from planner.stereo_partners import added_shortfall, forecast
 from scene.config import setting, typed_settings
 from scene.plan import PlanningError
 
@@ -97,6 +98,7 @@ def fit_budget(
     drone,
     takeoff: np.ndarray,
     tsp_runs: int = 1,
+    partners: PartnerTerm | None = None,
 ) -> tuple[np.ndarray, dict]:
     """Remove views of ``state`` (whose rows are ``viewpoints``) until the plan fits ``limit``.
 
@@ -106,6 +108,8 @@ def fit_budget(
         limit: the budget.
         drone: the drone, for a time or battery budget (``drone.model.DroneSettings``).
         takeoff: (3,) take-off point (m).
+        partners: the stereo partners the views will find (``planner.stereo_partners``) and what a
+            lost one costs; None: the views go by the objective alone.
 
     Returns:
         (V,) bool: the views kept; the record ``plan.json`` keeps (asked, what the unconstrained
@@ -136,19 +140,57 @@ def fit_budget(
         else:
             to_go = n_views - int(limit.max_images)
         batch = max(1, min(n_views - 1, int(_BATCH_SHARE * to_go) or 1))
-        victims = np.lexsort((np.arange(n_views), loss))[:batch]
+        victims = _pick_victims(loss, batch, None if partners is None else partners.among(rows))
         state.commit(victims)
         kept[rows[victims]] = False
         if limit.timed:
             flight = flight_of(vps[kept], drone, takeoff, tsp_runs)[1]
     spent = {"n_images": int(kept.sum()), **({} if flight is None else _spent(flight))}
-    return kept, {
+    record = {
         "asked": limit.asked(),
         "unconstrained": before,
         "spent": spent,
         "R_before": r_before,
         "R_after": state.R,
     }
+    if partners is not None:
+        record["stereo_partners"] = {
+            "weight": partners.weight,
+            "unconstrained": forecast(partners.eligible, partners.num_partners),
+            "spent": forecast(partners.among(np.flatnonzero(kept)).eligible, partners.num_partners),
+        }
+    return kept, record
+
+
+@dataclass(frozen=True)
+class PartnerTerm:
+    """The stereo partners' part of the prune: a view's removal costs ``weight`` times the batch's
+    mean objective loss for every partner slot it takes from a kept view (``added_shortfall``)."""
+
+    eligible: np.ndarray  # (V, V) bool over the views fit_budget is given
+    num_partners: int
+    weight: float
+
+    def among(self, rows: np.ndarray) -> PartnerTerm:
+        return PartnerTerm(self.eligible[np.ix_(rows, rows)], self.num_partners, self.weight)
+
+
+def _pick_victims(loss: np.ndarray, batch: int, partners: PartnerTerm | None) -> np.ndarray:
+    """The ``batch`` views to remove: the least ``loss`` (ties: the first), or with ``partners``
+    one at a time by loss plus the partner shortfall each adds, counted after the ones picked."""
+    order = np.lexsort((np.arange(len(loss)), loss))
+    if partners is None or partners.weight == 0:
+        return order[:batch]
+    alive = np.ones(len(loss), bool)
+    scale = partners.weight * float(loss.mean())
+    victims = []
+    for _ in range(batch):
+        cost = loss + scale * added_shortfall(partners.eligible, alive, partners.num_partners)
+        cost[~alive] = np.inf
+        victim = int(np.lexsort((np.arange(len(cost)), cost))[0])
+        alive[victim] = False
+        victims.append(victim)
+    return np.asarray(victims)
 
 
 def _target_s(limit: BudgetLimit, drone) -> float:

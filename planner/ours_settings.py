@@ -18,6 +18,7 @@ from planner.candidates import CandidateSettings, FlightLimits
 from planner.cmaes_refine import CmaSettings
 from planner.heuristics import HeuristicParams
 from planner.ours_budget import BudgetLimit
+from planner.stereo_partners import PartnerRule
 from planner.visibility import VisibilityLimits
 from scene.camera import Intrinsics
 from scene.plan import PlanningError
@@ -30,6 +31,13 @@ def _drone(node):
         return DroneSettings.from_config(node) if node is not None else DroneSettings.default()
     except DroneError as exc:
         raise PlanningError(f"planner ours: {exc}") from exc
+
+
+def _partner_rule(node) -> PartnerRule:
+    try:
+        return PartnerRule.from_config(node)
+    except ValueError as exc:
+        raise PlanningError(str(exc)) from exc
 
 
 def _number(cfg: Mapping, *path: str):
@@ -99,6 +107,8 @@ class OursSettings:
         n_points: surface samples.
         takeoff: [x, y, z] (m), or None for the proxy's lowest corner on the ground.
         budget: the crew's budget (``planner.ours_budget``); ``drone`` the drone it is flown on.
+        partners: the dense stage's stereo-partner test the budget prune keeps views for
+            (``planner.stereo_partners``).
     """
 
     cfg: dict
@@ -117,6 +127,7 @@ class OursSettings:
     takeoff: tuple[float, float, float] | None
     budget: BudgetLimit
     drone: object
+    partners: PartnerRule
 
     @classmethod
     def build(cls, cfg: dict, intrinsics: Intrinsics) -> OursSettings:
@@ -228,5 +239,6 @@ class OursSettings:
             n_points=int(cfg["n_points"]),
             takeoff=takeoff,
             budget=BudgetLimit.from_config(cfg.get("budget_limit")),
+            partners=_partner_rule(cfg.get("budget_partners")),
             drone=_drone(cfg.get("drone")),
         )

@@ -53,6 +53,9 @@ def test_an_image_budget_plans_that_many_views_and_records_what_it_gave_up():
     assert budget["unconstrained"]["n_images"] == 86 == len(budget["unconstrained_viewpoints"])
     assert budget["spent"]["n_images"] == 50
     assert budget["R_after"] < budget["R_before"]
+    partners = budget["stereo_partners"]
+    assert sum(partners["unconstrained"]["views_by_partners"]) == 86
+    assert sum(partners["spent"]["views_by_partners"]) == 50
 
 
 def test_a_flight_time_budget_is_kept_on_the_drone_model():
@@ -113,6 +116,7 @@ def test_a_budget_below_the_coverage_views_is_refused_with_the_smallest_one():
         ("planner.budget_limit.max_flight_min=-5", "budget_limit.max_flight_min must be > 0"),
         ("planner.budget_limit.max_flight_min=nan", "budget_limit.max_flight_min must be a finite number"),
         ("planner.budget_limit.max_batteries=1.5", "budget_limit.max_batteries must be an integer"),
+        ("planner.budget_partners.weight=-0.5", "budget_partners.weight must be >= 0"),
     ],
 )
 def test_a_bad_budget_is_refused_before_any_work(override, named):

@@ -81,6 +81,11 @@ def test_defaults_are_the_config_file():
     # and the drone from the run's drone group
     assert cfg["drone"] == "${drone}"
     cfg["drone"] = yaml.safe_load((ROOT / "conf" / "drone" / "default.yaml").read_text())
+    # and the stereo-partner test from the dense stage's
+    dense = yaml.safe_load((ROOT / "conf" / "reconstruct" / "default.yaml").read_text())["dense"]
+    for key, value in cfg["budget_partners"].items():
+        if value == f"${{reconstruct.dense.{key}}}":
+            cfg["budget_partners"][key] = dense[key]
     assert cfg.pop("name") == "ours" and cfg.pop("_target_") == "planner.ours.plan"
     assert cfg.pop("budget")["knob"] == "budget_limit.max_images"
     assert cfg == DEFAULTS
