@@ -7,7 +7,10 @@ objective least are removed: per image for an image budget, per second of flight
 battery budget (a view's stop and the detour to it, in the flight-time order of
 ``planner.trajectory.order_by_flight_time``). The objective is the one the plan reports as its
 final R (Eq. 10 with the detail heuristics, every view seen within the coverage range), so the
-views kept are the ones the objective values most for what they cost. A budget the plan already
+views kept are the ones the objective values most for what they cost. A removal also pays for the
+stereo partners it takes from the views that stay (``PartnerTerm``, ``planner.stereo_partners``):
+the objective alone left a 100-image tomb plan with 30 views short of partners, and the dense stage
+made less of their walls (results/planner_ours.md). A budget the plan already
 fits leaves it as it is; a budget below what the model-coverage views alone need is refused, naming
 the smallest that can be planned.
 """
