@@ -9,7 +9,7 @@ battery budget (a view's stop and the detour to it, in the flight-time order of
 final R (Eq. 10 with the detail heuristics, every view seen within the coverage range), so the
 views kept are the ones the objective values most for what they cost. A removal also pays for the
 stereo partners it takes from the views that stay (``PartnerTerm``, ``planner.stereo_partners``):
-the objective alone left a 100-image tomb plan with 30 views short of partners, and the dense stage
+the objective alone left a 100-image tomb plan with 30 views of two partners or fewer, and the dense stage
 made less of their walls (results/planner_ours.md). A budget the plan already
 fits leaves it as it is; a budget below what the model-coverage views alone need is refused, naming
 the smallest that can be planned.
