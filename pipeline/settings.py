@@ -119,12 +119,14 @@ def cell_settings(cfg: DictConfig) -> CellSettings:
         order = OmegaConf.select(cfg, "survey.flight_order", default="planner")
         if order not in FLIGHT_ORDERS:
             raise ValueError(f"survey.flight_order must be one of {FLIGHT_ORDERS}, got {order!r}")
-        params, budget = planner_setup(cfg)
-        check_planner(str(cfg.planner._target_), params, intrinsics)
+        # The reconstruction before the planner: ours' budget prune reads the dense stage's partner
+        # test (planner.budget_partners), so a bad value is named where the user set it.
         SfmSettings.from_config(cfg.reconstruct.sfm)
         dense = DenseSettings.from_config(cfg.reconstruct.dense)
         DenseSettings.from_config(proxy_flight_config(cfg.reconstruct)["dense"], "reconstruct.proxy.dense")
         check_fusion_memory(dense, plain(cfg.camera))
+        params, budget = planner_setup(cfg)
+        check_planner(str(cfg.planner._target_), params, intrinsics)
         evaluation = EvaluationSettings.from_config(cfg.evaluate)
     except SettingsError:
         raise
