@@ -293,6 +293,9 @@ def default_mode_records(preset: str, cells: Sequence[StudyCell]) -> list[str]:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="uavplan-study study-plan", description=__doc__.splitlines()[0])
     parser.add_argument("--phases", type=int, nargs="+", help="only these phases (default: all)")
+    parser.add_argument(
+        "--planners", nargs="+", help="only these planners' cells (default: all), for a measurement preset"
+    )
     parser.add_argument("--preset", default=STUDY_PRESET, help="record folder under results/cells/")
     parser.add_argument("--study", type=Path, default=Path("study") / STUDY_PRESET, help="run directories")
     parser.add_argument("--list", action="store_true", help="print the cells left, one per line")
@@ -307,6 +310,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"error: --phases: no phase {unknown} (phases 1-7)", file=sys.stderr)
             return 2
         cells = [c for c in cells if c.phase in args.phases]
+    if args.planners:
+        unknown = sorted(set(args.planners) - set(PLANNERS))
+        if unknown:
+            known = ", ".join(PLANNERS)
+            print(f"error: --planners: no planner {unknown} (planners: {known})", file=sys.stderr)
+            return 2
+        cells = [c for c in cells if c.planner in args.planners]
     for cell in cells:
         level_rank(cell.budget)
     recorded = recorded_specs(args.preset, cells)

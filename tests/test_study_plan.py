@@ -175,3 +175,19 @@ def test_records_of_the_default_mode_are_named_before_a_run(monkeypatch):
     ]
     # The noise floor's repeats run in the default mode on purpose: not asked about.
     assert asked == [("deterministic", ["tomb/ours/0/default/0.03"])]
+
+
+def test_a_measurement_preset_can_queue_some_planners_only(tmp_path, capsys):
+    from experiments.study_plan import main
+
+    preset = f"no_records_{tmp_path.name}"  # no folder under results/cells/: every cell is left
+    assert main(["--phases", "1", "--planners", "ours", "ours_plus", "--preset", preset, "--list"]) == 0
+    listed = capsys.readouterr().out.split()
+    # 4 own levels each, on the tomb and the church
+    assert len(listed) == 16
+    assert {spec.split("/")[1] for spec in listed} == {"ours", "ours_plus"}
+    assert listed[0] == "tomb/ours/0/lowest/0.03"
+    assert main(["--planners", "smith", "drone", "--list"]) == 2
+    assert capsys.readouterr().err.strip() == (
+        "error: --planners: no planner ['drone'] (planners: lawnmower, smith, yan, ours, ours_plus)"
+    )
