@@ -120,6 +120,25 @@ def textured_pixels(gray: np.ndarray, window_px: int, min_std: float) -> np.ndar
     return np.sqrt(np.maximum(mean_sq - mean * mean, 0.0)) >= float(min_std)
 
 
+def sgbm_matcher(scfg: Mapping, num_disparities: int):
+    """OpenCV's 3-way SGBM with ``reconstruct.dense.sgbm``'s settings, searching ``num_disparities``
+    px from 0 (a multiple of 16); P1 and P2 are the settings' per-pixel penalties times the block's
+    area (OpenCV's suggested 8 and 32 for one channel)."""
+    block = int(scfg["block_size"])
+    return cv2.StereoSGBM.create(
+        minDisparity=0,
+        numDisparities=int(num_disparities),
+        blockSize=block,
+        P1=round(float(scfg.get("p1_per_block_pixel", 8.0)) * block * block),
+        P2=round(float(scfg.get("p2_per_block_pixel", 32.0)) * block * block),
+        disp12MaxDiff=int(scfg["disp12_max_diff"]),
+        uniquenessRatio=int(scfg["uniqueness_ratio"]),
+        speckleWindowSize=int(scfg["speckle_window_size"]),
+        speckleRange=int(scfg["speckle_range"]),
+        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    )
+
+
 def sgbm_disparity(sgbm, left: np.ndarray, right: np.ndarray, mirror_pass: bool) -> np.ndarray:
     """SGBM's disparity (px, float32; negative where it found no match) of rectified ``left``.
 
@@ -170,20 +189,8 @@ def pair_depth(
     right_valid = cv2.warpPerspective(ones, pair.H_src, (width, height), flags=cv2.INTER_NEAREST)
 
     scfg = cfg["sgbm"]
-    block = int(scfg["block_size"])
-    sgbm = cv2.StereoSGBM.create(
-        minDisparity=0,
-        numDisparities=num_disp,
-        blockSize=block,
-        P1=8 * block * block,
-        P2=32 * block * block,
-        disp12MaxDiff=int(scfg["disp12_max_diff"]),
-        uniquenessRatio=int(scfg["uniqueness_ratio"]),
-        speckleWindowSize=int(scfg["speckle_window_size"]),
-        speckleRange=int(scfg["speckle_range"]),
-        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
-    )
-    disparity = sgbm_disparity(sgbm, left, right, bool(scfg.get("mirror_pass", False)))
+    mirror_pass = bool(scfg.get("mirror_pass", False))
+    disparity = sgbm_disparity(sgbm_matcher(scfg, num_disp), left, right, mirror_pass)
     valid = disparity >= 0.0
     valid &= disparity + min_disp > 0.5
     # The matched pixel must lie inside the partner's image (SGBM happily matches the black border).

@@ -24,6 +24,15 @@ class SgbmSettings:
     speckle_range: int = setting(low=0)
     disp12_max_diff: int = setting()
     mirror_pass: bool = setting(False)  # reconstruct.dense.sgbm_disparity: also match upside down, average
+    p1_per_block_pixel: float = setting(8.0, low=0)  # SGBM's P1 / block_size^2 (disparity steps of 1)
+    p2_per_block_pixel: float = setting(32.0, low=0)  # P2 / block_size^2 (larger steps)
+
+    def __post_init__(self) -> None:
+        if self.p2_per_block_pixel < self.p1_per_block_pixel:
+            raise ValueError(
+                "p2_per_block_pixel must be at least p1_per_block_pixel (OpenCV's SGBM needs P2 >= P1), "
+                f"got {self.p2_per_block_pixel:g} and {self.p1_per_block_pixel:g}"
+            )
 
 
 @dataclass(frozen=True)

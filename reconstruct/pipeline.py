@@ -130,7 +130,11 @@ def _in_effect(section: str, value, fusion_bytes: float = 0.0):
         value = _without(value, ("geometric_consistency",), gc_off)
         sgbm = value.get("sgbm")
         if isinstance(sgbm, dict):
-            value = {**value, "sgbm": _without(sgbm, ("mirror_pass",), not sgbm.get("mirror_pass"))}
+            sgbm = _without(sgbm, ("mirror_pass",), not sgbm.get("mirror_pass"))
+            # OpenCV's own P1 and P2 (8 and 32 x block_size^2) match as before the settings existed.
+            sgbm = _without(sgbm, ("p1_per_block_pixel",), sgbm.get("p1_per_block_pixel", 8.0) == 8.0)
+            sgbm = _without(sgbm, ("p2_per_block_pixel",), sgbm.get("p2_per_block_pixel", 32.0) == 32.0)
+            value = {**value, "sgbm": sgbm}
         return {**value, "fusion": fusion}
     if section != "sfm" or not isinstance(value, dict) or not isinstance(value.get("mapping"), dict):
         return value

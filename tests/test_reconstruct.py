@@ -961,6 +961,8 @@ def test_dense_settings_added_after_the_records_leave_legacy_keys_alone(box_flig
         "dense.fusion.slant_window_px": 0.0,
         "dense.fusion.gate_disparity_px": 0.0,
         "dense.sgbm.mirror_pass": False,
+        "dense.sgbm.p1_per_block_pixel": 8.0,
+        "dense.sgbm.p2_per_block_pixel": 32.0,
     }
     explicit = reconstruct_cfg(**legacy)
     before = reconstruct_cfg(**legacy)
@@ -970,7 +972,8 @@ def test_dense_settings_added_after_the_records_leave_legacy_keys_alone(box_flig
         before.dense.fusion.pop(key)
     for key in ("conditioning_ratio", "conditioning_cell_m", "slant_window_px", "gate_disparity_px"):
         before.dense.fusion.pop(key)
-    before.dense.sgbm.pop("mirror_pass")
+    for key in ("mirror_pass", "p1_per_block_pixel", "p2_per_block_pixel"):
+        before.dense.sgbm.pop(key)
     key = flight_content_key(box_flight, flight, before, 0)
     assert flight_content_key(box_flight, flight, explicit, 0) == key
     rays_only = reconstruct_cfg(**{**legacy, "dense.fusion.ray_neighbours": 3})  # unread by COLMAP's fusion
@@ -982,6 +985,8 @@ def test_dense_settings_added_after_the_records_leave_legacy_keys_alone(box_flig
         "dense.fusion.support_share": 0.3,
         "dense.partner_weights": "precision",
         "dense.sgbm.mirror_pass": True,
+        "dense.sgbm.p1_per_block_pixel": 0.8,
+        "dense.sgbm.p2_per_block_pixel": 64.0,
     }
     keys = {
         flight_content_key(box_flight, flight, reconstruct_cfg(**{**legacy, key: value}), 0)
@@ -993,7 +998,7 @@ def test_dense_settings_added_after_the_records_leave_legacy_keys_alone(box_flig
     keys.add(flight_content_key(box_flight, flight, reconstruct_cfg(**slanted), 0))
     gated = {**conditioned, "dense.fusion.gate_disparity_px": 3.0}
     keys.add(flight_content_key(box_flight, flight, reconstruct_cfg(**gated), 0))
-    assert len(keys) == 9 and flight_content_key(box_flight, flight, before, 0) not in keys
+    assert len(keys) == 11 and flight_content_key(box_flight, flight, before, 0) not in keys
 
 
 def test_a_run_killed_after_sfm_resumes_from_its_sparse_model(box_flight, box_reconstruction, tmp_path):

@@ -44,6 +44,11 @@ def composed(*overrides: str):
         (["reconstruct.dense.num_partners=0"], "reconstruct.dense.num_partners"),
         (["reconstruct.dense.fusion.max_memory_gb=-2"], "reconstruct.dense.fusion.max_memory_gb"),
         (["reconstruct.dense.sgbm.block_size=4"], "reconstruct.dense.sgbm.block_size"),
+        (["reconstruct.dense.sgbm.p1_per_block_pixel=-1"], "reconstruct.dense.sgbm.p1_per_block_pixel"),
+        (
+            ["reconstruct.dense.sgbm.p2_per_block_pixel=4"],
+            "reconstruct.dense.sgbm.p2_per_block_pixel must be at least p1_per_block_pixel",
+        ),
         (["+reconstruct.dense.num_partner=3"], "num_partner"),
         (["reconstruct.proxy.dense.max_image_size=0"], "reconstruct.proxy.dense.max_image_size"),
         (["evaluate.gt_sample_density_per_m2=-5"], "gt_sample_density_per_m2"),
