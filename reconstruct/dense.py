@@ -32,7 +32,12 @@ import numpy as np
 import pycolmap
 from tqdm import tqdm
 
-from reconstruct.dense_settings import BACKENDS, DenseSettings
+from reconstruct.dense_settings import (
+    BACKENDS,
+    OPENCV_P1_PER_BLOCK_PIXEL,
+    OPENCV_P2_PER_BLOCK_PIXEL,
+    DenseSettings,
+)
 from reconstruct.depth_filter import edge_pixels, geometric_support
 from reconstruct.rectify import DEFAULT_MAX_AREA_RATIO, RectifiedPair, rectify_pair
 from reconstruct.workspace import (
@@ -129,8 +134,8 @@ def sgbm_matcher(scfg: Mapping, num_disparities: int):
         minDisparity=0,
         numDisparities=int(num_disparities),
         blockSize=block,
-        P1=round(float(scfg.get("p1_per_block_pixel", 8.0)) * block * block),
-        P2=round(float(scfg.get("p2_per_block_pixel", 32.0)) * block * block),
+        P1=round(float(scfg.get("p1_per_block_pixel", OPENCV_P1_PER_BLOCK_PIXEL)) * block * block),
+        P2=round(float(scfg.get("p2_per_block_pixel", OPENCV_P2_PER_BLOCK_PIXEL)) * block * block),
         disp12MaxDiff=int(scfg["disp12_max_diff"]),
         uniquenessRatio=int(scfg["uniqueness_ratio"]),
         speckleWindowSize=int(scfg["speckle_window_size"]),

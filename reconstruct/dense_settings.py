@@ -14,6 +14,11 @@ from scene.config import setting, typed_settings
 BACKENDS = ("auto", "cpu", "cuda", "oracle")
 
 
+# OpenCV's suggested SGBM penalties for one channel, per pixel of the block: P1 = 8 x block_size^2.
+OPENCV_P1_PER_BLOCK_PIXEL = 8.0
+OPENCV_P2_PER_BLOCK_PIXEL = 32.0
+
+
 @dataclass(frozen=True)
 class SgbmSettings:
     """OpenCV StereoSGBM's parameters (px, counts)."""
@@ -24,8 +29,8 @@ class SgbmSettings:
     speckle_range: int = setting(low=0)
     disp12_max_diff: int = setting()
     mirror_pass: bool = setting(False)  # reconstruct.dense.sgbm_disparity: also match upside down, average
-    p1_per_block_pixel: float = setting(8.0, low=0)  # SGBM's P1 / block_size^2 (disparity steps of 1)
-    p2_per_block_pixel: float = setting(32.0, low=0)  # P2 / block_size^2 (larger steps)
+    p1_per_block_pixel: float = setting(OPENCV_P1_PER_BLOCK_PIXEL, low=0)  # P1 / block_size^2 (steps of 1)
+    p2_per_block_pixel: float = setting(OPENCV_P2_PER_BLOCK_PIXEL, low=0)  # P2 / block_size^2 (larger)
 
     def __post_init__(self) -> None:
         if self.p2_per_block_pixel < self.p1_per_block_pixel:

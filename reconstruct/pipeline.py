@@ -33,6 +33,7 @@ import trimesh
 
 from reconstruct.align import georeference_models, pose_errors
 from reconstruct.dense import FUSION_BYTES_PER_PX, dense_reconstruct, fusion_budget_gb
+from reconstruct.dense_settings import OPENCV_P1_PER_BLOCK_PIXEL, OPENCV_P2_PER_BLOCK_PIXEL
 from reconstruct.errors import ReconstructionError
 from reconstruct.flight import CAMERAS_FILE, Flight, read_flight, simulate_gnss
 from reconstruct.proxy import poisson_proxy
@@ -132,8 +133,11 @@ def _in_effect(section: str, value, fusion_bytes: float = 0.0):
         if isinstance(sgbm, dict):
             sgbm = _without(sgbm, ("mirror_pass",), not sgbm.get("mirror_pass"))
             # OpenCV's own P1 and P2 (8 and 32 x block_size^2) match as before the settings existed.
-            sgbm = _without(sgbm, ("p1_per_block_pixel",), sgbm.get("p1_per_block_pixel", 8.0) == 8.0)
-            sgbm = _without(sgbm, ("p2_per_block_pixel",), sgbm.get("p2_per_block_pixel", 32.0) == 32.0)
+            for key, opencv in (
+                ("p1_per_block_pixel", OPENCV_P1_PER_BLOCK_PIXEL),
+                ("p2_per_block_pixel", OPENCV_P2_PER_BLOCK_PIXEL),
+            ):
+                sgbm = _without(sgbm, (key,), sgbm.get(key, opencv) == opencv)
             value = {**value, "sgbm": sgbm}
         return {**value, "fusion": fusion}
     if section != "sfm" or not isinstance(value, dict) or not isinstance(value.get("mapping"), dict):
