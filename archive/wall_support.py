@@ -20,6 +20,7 @@ import numpy as np
 import pandas as pd
 from omegaconf import OmegaConf
 
+from experiments.depth_errors import WALL_MAX_NORMAL_Z
 from pipeline.proxy import load_proxy
 from pipeline.settings import cell_settings
 from planner.ours import resolve_params
@@ -29,31 +30,36 @@ from planner.stereo_partners import partner_matrix
 from planner.visibility import VisibilityModel
 
 GRADIENTS = (None, 0.5, 0.3, 0.2)
-WALL_MAX_NORMAL_Z = np.sin(np.radians(45.0))
+
+
+def ours_visibility(proxy, run: Path):
+    """Ours' settings, planning samples (points, normals) and coverage visibility on ``proxy``, with
+    the camera and scene of ``run`` (whatever planner it flew)."""
+    cfg = OmegaConf.load(run / ".hydra" / "config.yaml")
+    cfg.planner = OmegaConf.load(Path("conf") / "planner" / "ours.yaml")
+    cells = cell_settings(cfg)
+    params = resolve_params(OmegaConf.to_container(cells.planner_params, resolve=True))
+    settings = OursSettings.build(params, cells.intrinsics)
+    samples, normals = sample_surface(proxy, settings.n_points, 0)
+    vis = params["visibility"]
+    model = VisibilityModel(
+        proxy,
+        samples,
+        normals,
+        cells.intrinsics,
+        settings.det_limits,
+        vis["ray_offset_m"],
+        vis["image_margin_px"],
+    ).with_limits(settings.cov_limits)
+    return settings, samples, normals, model
 
 
 def main() -> None:
     proxy = load_proxy(Path(sys.argv[1]))
-    model = samples = normals = settings = None
-    for run in map(Path, sys.argv[2:]):
-        cells = cell_settings(OmegaConf.load(run / ".hydra" / "config.yaml"))
-        if model is None:  # ours' samples and visibility, whatever planner the run flew
-            cfg = OmegaConf.load(run / ".hydra" / "config.yaml")
-            cfg.planner = OmegaConf.load(Path("conf") / "planner" / "ours.yaml")
-            params = resolve_params(OmegaConf.to_container(cell_settings(cfg).planner_params, resolve=True))
-            settings = OursSettings.build(params, cells.intrinsics)
-            samples, normals = sample_surface(proxy, settings.n_points, 0)
-            vis = params["visibility"]
-            model = VisibilityModel(
-                proxy,
-                samples,
-                normals,
-                cells.intrinsics,
-                settings.det_limits,
-                vis["ray_offset_m"],
-                vis["image_margin_px"],
-            ).with_limits(settings.cov_limits)
-        wall = np.abs(normals[:, 2]) < WALL_MAX_NORMAL_Z
+    runs = [Path(a) for a in sys.argv[2:]]
+    settings, samples, normals, model = ours_visibility(proxy, runs[0])
+    wall = np.abs(normals[:, 2]) < WALL_MAX_NORMAL_Z
+    for run in runs:
         vps = pd.read_csv(run / "plan" / "viewpoints.csv")[["x", "y", "z", "yaw_deg", "pitch_deg"]].to_numpy()
         obs = model.observe(vps)
         eligible = partner_matrix(obs.visible, obs.direction, vps, settings.partners)
