@@ -167,6 +167,31 @@ def sgbm_disparity(sgbm, left: np.ndarray, right: np.ndarray, mirror_pass: bool)
     return disparity.astype(np.float32)
 
 
+def matchable_window(
+    left_valid: np.ndarray, right_valid: np.ndarray, num_disparities: int
+) -> tuple[slice, slice] | None:
+    """The rows and columns of a rectified canvas SGBM must match to reach every pixel it can match.
+
+    A reference pixel at column x (``left_valid``, (H, W) bool) can match where the partner
+    (``right_valid``) has a pixel in columns x - num_disparities + 1 .. x of its row. The window
+    is the box of those pixels, widened on the left by ``num_disparities`` columns (SGBM leaves the
+    first ``num_disparities`` columns of what it matches unmatched). None when no pixel can match.
+    On the tomb's 100-image ours flight the rectified canvases (the reference turned into the pair's
+    orientation, plus the search's left padding) were 2.4x the image at the median and 37 % of their
+    pixels could match; the box holds 67 % of the canvas's SGBM work.
+    """
+    n = int(num_disparities)
+    reach = np.cumsum(np.pad(right_valid.astype(np.int32), ((0, 0), (n, 0))), axis=1)
+    matchable = left_valid & ((reach[:, n:] - reach[:, :-n]) > 0)
+    rows = np.flatnonzero(matchable.any(axis=1))
+    if len(rows) == 0:
+        return None
+    cols = np.flatnonzero(matchable.any(axis=0))
+    start = max(0, int(cols[0]) - n)
+    stop = min(max(int(cols[-1]) + 1, start + n + 1), matchable.shape[1])  # SGBM needs more than n
+    return slice(int(rows[0]), int(rows[-1]) + 1), slice(start, stop)
+
+
 def pair_depth(
     ref: View, src: View, ref_gray: np.ndarray, src_gray: np.ndarray, ref_points: np.ndarray, cfg: Mapping
 ) -> np.ndarray | None:
@@ -188,14 +213,26 @@ def pair_depth(
     if pair is None:
         return None
     width, height = pair.size
-    left = cv2.warpPerspective(ref_gray, pair.H_ref, (width, height), flags=cv2.INTER_LINEAR)
-    right = cv2.warpPerspective(src_gray, pair.H_src, (width, height), flags=cv2.INTER_LINEAR)
     ones = np.full(src_gray.shape, 255, np.uint8)
     right_valid = cv2.warpPerspective(ones, pair.H_src, (width, height), flags=cv2.INTER_NEAREST)
-
     scfg = cfg["sgbm"]
+    row_span, col_span = slice(0, height), slice(0, width)
+    if scfg.get("crop_to_overlap", False):
+        ref_ones = np.full(ref_gray.shape, 255, np.uint8)
+        left_valid = cv2.warpPerspective(ref_ones, pair.H_ref, (width, height), flags=cv2.INTER_NEAREST)
+        window = matchable_window(left_valid > 0, right_valid > 0, num_disp)
+        if window is None:
+            return None
+        row_span, col_span = window
+    # Each image is warped straight into the window: the canvas shifted by its top-left corner.
+    corner = np.array([[1.0, 0.0, -col_span.start], [0.0, 1.0, -row_span.start], [0.0, 0.0, 1.0]])
+    size = (col_span.stop - col_span.start, row_span.stop - row_span.start)
+    left = cv2.warpPerspective(ref_gray, corner @ pair.H_ref, size, flags=cv2.INTER_LINEAR)
+    right = cv2.warpPerspective(src_gray, corner @ pair.H_src, size, flags=cv2.INTER_LINEAR)
+
     mirror_pass = bool(scfg.get("mirror_pass", False))
-    disparity = sgbm_disparity(sgbm_matcher(scfg, num_disp), left, right, mirror_pass)
+    disparity = np.full((height, width), -1.0, np.float32)
+    disparity[row_span, col_span] = sgbm_disparity(sgbm_matcher(scfg, num_disp), left, right, mirror_pass)
     valid = disparity >= 0.0
     valid &= disparity + min_disp > 0.5
     # The matched pixel must lie inside the partner's image (SGBM happily matches the black border).

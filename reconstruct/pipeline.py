@@ -132,6 +132,7 @@ def _in_effect(section: str, value, fusion_bytes: float = 0.0):
         sgbm = value.get("sgbm")
         if isinstance(sgbm, dict):
             sgbm = _without(sgbm, ("mirror_pass",), not sgbm.get("mirror_pass"))
+            sgbm = _without(sgbm, ("crop_to_overlap",), not sgbm.get("crop_to_overlap"))
             # OpenCV's own P1 and P2 (8 and 32 x block_size^2) match as before the settings existed.
             for key, opencv in (
                 ("p1_per_block_pixel", OPENCV_P1_PER_BLOCK_PIXEL),

@@ -31,6 +31,7 @@ from reconstruct.dense import (
     fusion_budget_gb,
     fusion_chunk_size,
     normals_from_depth,
+    matchable_window,
     pair_depth,
     reference_views,
     textured_pixels,
@@ -361,6 +362,54 @@ def test_sgbm_pair_depth_of_a_textured_plane():
     rel = np.abs(depth[valid] - truth[valid]) / truth[valid]
     assert np.median(rel) < 0.002
     assert np.percentile(rel, 95) < 0.01
+
+
+def test_the_matchable_window_of_constructed_masks():
+    """A reference block in rows 10-29, columns 40-99; the partner's pixels in columns 0-59 of rows
+    15-49. With a 16 px search a reference pixel matches up to column 59 + 15 = 74, so the window
+    is rows 15-29 and columns 40 - 16 = 24 (the search's padding) to 74."""
+    left = np.zeros((60, 120), bool)
+    left[10:30, 40:100] = True
+    right = np.zeros((60, 120), bool)
+    right[15:50, 0:60] = True
+    assert matchable_window(left, right, 16) == (slice(15, 30), slice(24, 75))
+    # No partner pixel within reach of any reference pixel: nothing to match.
+    far = np.zeros_like(right)
+    far[:, 110:] = True
+    assert matchable_window(left, far, 8) is None
+    # A window narrower than the search is widened: SGBM matches nothing in its first n columns.
+    narrow = np.zeros_like(left)
+    narrow[10:30, 2:6] = True
+    assert matchable_window(narrow, right, 16) == (slice(15, 30), slice(0, 17))
+
+
+def test_matching_the_window_keeps_the_depth_of_the_whole_canvas():
+    """A diagonal pair over a textured plane: rectification turns the reference by 45 deg, so a
+    third of the canvas is empty. Matching only the window that can match gives the same depth at
+    all but a few pixels."""
+    intr = Intrinsics(320, 240, 60.0)
+    ref, src = plane_views(intr, [(0.0, 0.0), (2.5, 2.5)], height=12.0)
+    texture = noise_texture(1024, seed=3)
+    images = [
+        raycast_box_world([], texture, 0.02, view.rotation, view.translation, intr) for view in (ref, src)
+    ]
+    points = np.random.default_rng(0).uniform([-3, -2, 0], [3, 2, 0], (50, 3))
+    cfg = reconstruct_cfg().dense
+    assert cfg.sgbm.crop_to_overlap
+    whole = pair_depth(ref, src, *images, points, OmegaConf.merge(cfg, {"sgbm": {"crop_to_overlap": False}}))
+    cropped = pair_depth(ref, src, *images, points, cfg)
+    has_whole, has_cropped = np.isfinite(whole), np.isfinite(cropped)
+    assert has_whole.mean() > 0.5
+    assert (has_whole != has_cropped).mean() < 0.002
+    both = has_whole & has_cropped
+    # 86 % bit for bit; SGBM's paths from above start at the window's top row instead of the
+    # canvas's, which moves a few depths by a fraction of their sub-pixel fit.
+    assert (whole[both] == cropped[both]).mean() > 0.8
+    assert np.percentile(np.abs(cropped[both] - whole[both]) / whole[both], 99) < 1e-3
+    truth = plane_depth(ref, 0.0)
+    errors = [np.abs(depth[both] - truth[both]) / truth[both] for depth in (whole, cropped)]
+    assert np.median(errors[1]) < 0.005
+    assert np.median(errors[1]) == pytest.approx(np.median(errors[0]), abs=1e-5)
 
 
 def test_sgbm_gives_the_uniform_sky_no_depth():
@@ -961,6 +1010,7 @@ def test_dense_settings_added_after_the_records_leave_legacy_keys_alone(box_flig
         "dense.fusion.slant_window_px": 0.0,
         "dense.fusion.gate_disparity_px": 0.0,
         "dense.sgbm.mirror_pass": False,
+        "dense.sgbm.crop_to_overlap": False,
         "dense.sgbm.p1_per_block_pixel": 8.0,
         "dense.sgbm.p2_per_block_pixel": 32.0,
     }
@@ -972,7 +1022,7 @@ def test_dense_settings_added_after_the_records_leave_legacy_keys_alone(box_flig
         before.dense.fusion.pop(key)
     for key in ("conditioning_ratio", "conditioning_cell_m", "slant_window_px", "gate_disparity_px"):
         before.dense.fusion.pop(key)
-    for key in ("mirror_pass", "p1_per_block_pixel", "p2_per_block_pixel"):
+    for key in ("mirror_pass", "crop_to_overlap", "p1_per_block_pixel", "p2_per_block_pixel"):
         before.dense.sgbm.pop(key)
     key = flight_content_key(box_flight, flight, before, 0)
     assert flight_content_key(box_flight, flight, explicit, 0) == key
@@ -985,6 +1035,7 @@ def test_dense_settings_added_after_the_records_leave_legacy_keys_alone(box_flig
         "dense.fusion.support_share": 0.3,
         "dense.partner_weights": "precision",
         "dense.sgbm.mirror_pass": True,
+        "dense.sgbm.crop_to_overlap": True,
         "dense.sgbm.p1_per_block_pixel": 0.8,
         "dense.sgbm.p2_per_block_pixel": 64.0,
     }
@@ -998,7 +1049,7 @@ def test_dense_settings_added_after_the_records_leave_legacy_keys_alone(box_flig
     keys.add(flight_content_key(box_flight, flight, reconstruct_cfg(**slanted), 0))
     gated = {**conditioned, "dense.fusion.gate_disparity_px": 3.0}
     keys.add(flight_content_key(box_flight, flight, reconstruct_cfg(**gated), 0))
-    assert len(keys) == 11 and flight_content_key(box_flight, flight, before, 0) not in keys
+    assert len(keys) == 12 and flight_content_key(box_flight, flight, before, 0) not in keys
 
 
 def test_a_run_killed_after_sfm_resumes_from_its_sparse_model(box_flight, box_reconstruction, tmp_path):
