@@ -344,15 +344,22 @@ def test_normals_from_depth_of_a_tilted_plane():
     assert angle.max() < 0.05
 
 
-def test_sgbm_pair_depth_of_a_textured_plane():
-    """Rectification + SGBM + back-projection recover a plane's depth from a sideways pair."""
+def textured_plane_pair(partner_xy: tuple[float, float]):
+    """Two nadir 320 x 240 views 12 m over a textured plane, the partner at ``partner_xy`` (m), their
+    images and 50 sparse points on the plane: (ref, src, images, points)."""
     intr = Intrinsics(320, 240, 60.0)
-    ref, src = plane_views(intr, [(0.0, 0.0), (3.0, 1.0)], height=12.0)
+    ref, src = plane_views(intr, [(0.0, 0.0), partner_xy], height=12.0)
     texture = noise_texture(1024, seed=3)
     images = [
         raycast_box_world([], texture, 0.02, view.rotation, view.translation, intr) for view in (ref, src)
     ]
     points = np.random.default_rng(0).uniform([-3, -2, 0], [3, 2, 0], (50, 3))
+    return ref, src, images, points
+
+
+def test_sgbm_pair_depth_of_a_textured_plane():
+    """Rectification + SGBM + back-projection recover a plane's depth from a sideways pair."""
+    ref, src, images, points = textured_plane_pair((3.0, 1.0))
     cfg = reconstruct_cfg().dense
     depth = pair_depth(ref, src, images[0], images[1], points, cfg)
     truth = plane_depth(ref, 0.0)
@@ -387,13 +394,7 @@ def test_matching_the_window_keeps_the_depth_of_the_whole_canvas():
     """A diagonal pair over a textured plane: rectification turns the reference by 45 deg, so a
     third of the canvas is empty. Matching only the window that can match gives the same depth at
     all but a few pixels."""
-    intr = Intrinsics(320, 240, 60.0)
-    ref, src = plane_views(intr, [(0.0, 0.0), (2.5, 2.5)], height=12.0)
-    texture = noise_texture(1024, seed=3)
-    images = [
-        raycast_box_world([], texture, 0.02, view.rotation, view.translation, intr) for view in (ref, src)
-    ]
-    points = np.random.default_rng(0).uniform([-3, -2, 0], [3, 2, 0], (50, 3))
+    ref, src, images, points = textured_plane_pair((2.5, 2.5))
     cfg = reconstruct_cfg().dense
     assert cfg.sgbm.crop_to_overlap
     whole = pair_depth(ref, src, *images, points, OmegaConf.merge(cfg, {"sgbm": {"crop_to_overlap": False}}))
@@ -415,15 +416,9 @@ def test_matching_the_window_keeps_the_depth_of_the_whole_canvas():
 def test_sgbm_gives_the_uniform_sky_no_depth():
     """A uniform band (rendered sky) above a textured plane: SGBM alone fills it with depth; the
     texture mask leaves it empty and keeps the plane."""
-    intr = Intrinsics(320, 240, 60.0)
-    ref, src = plane_views(intr, [(0.0, 0.0), (3.0, 1.0)], height=12.0)
-    texture = noise_texture(1024, seed=3)
-    images = [
-        raycast_box_world([], texture, 0.02, view.rotation, view.translation, intr) for view in (ref, src)
-    ]
+    ref, src, images, points = textured_plane_pair((3.0, 1.0))
     for image in images:
         image[:100] = 200  # the top 100 rows of both views: sky
-    points = np.random.default_rng(0).uniform([-3, -2, 0], [3, 2, 0], (50, 3))
     cfg = reconstruct_cfg().dense
     assert cfg.min_texture_std > 0
     unmasked = pair_depth(
