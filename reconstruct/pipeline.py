@@ -93,11 +93,20 @@ PROXY_FORMER_NORMAL_ERROR_DEG = 10.0
 
 
 def _proxy_in_effect(proxy: dict) -> dict:
-    fusion = (proxy.get("dense") or {}).get("fusion")
-    if not isinstance(fusion, dict) or fusion.get("max_normal_error") != PROXY_FORMER_NORMAL_ERROR_DEG:
+    dense = proxy.get("dense")
+    if not isinstance(dense, dict):
         return proxy
-    fusion = {k: v for k, v in fusion.items() if k != "max_normal_error"}
-    return {**proxy, "dense": {**proxy["dense"], "fusion": fusion}}
+    fusion = dense.get("fusion")
+    if isinstance(fusion, dict):
+        former = fusion.get("max_normal_error") == PROXY_FORMER_NORMAL_ERROR_DEG
+        dense = {**dense, "fusion": _without(fusion, ("max_normal_error",), former)}
+    sgbm = dense.get("sgbm")
+    if isinstance(sgbm, dict):
+        # Spelled out when the scored flights' matcher moved on: the proxy's matches as before.
+        sgbm = _without(sgbm, ("crop_to_overlap",), not sgbm.get("crop_to_overlap"))
+        former_p1 = sgbm.get("p1_per_block_pixel", OPENCV_P1_PER_BLOCK_PIXEL) == OPENCV_P1_PER_BLOCK_PIXEL
+        dense = {**dense, "sgbm": _without(sgbm, ("p1_per_block_pixel",), former_p1)}
+    return {**proxy, "dense": dense}
 
 
 def _in_effect(section: str, value, fusion_bytes: float = 0.0):

@@ -1139,19 +1139,28 @@ def test_proxy_dense_settings_override_only_the_exploratory_flight():
         proxy_flight_config(reconstruct_cfg(**{"proxy.dense": {"fusion": {"methd": "colmap"}}}))
 
 
-def test_the_proxy_keeps_colmaps_normal_tolerance_and_its_cache_key():
+def test_the_proxy_keeps_the_former_matcher_and_normal_tolerance_and_its_cache_key():
     from reconstruct.pipeline import proxy_settings
 
     cfg = reconstruct_cfg()
     assert cfg.dense.fusion.max_normal_error == 30.0  # the scored flights (SGBM's depth-derived normals)
-    assert proxy_flight_config(cfg)["dense"]["fusion"]["max_normal_error"] == 10.0
-    # Spelled out at COLMAP's value, the proxy's tolerance keys its proxies as before it was spelled out.
+    assert cfg.dense.sgbm.p1_per_block_pixel == 0.8 and cfg.dense.sgbm.crop_to_overlap
+    proxy_dense = proxy_flight_config(cfg)["dense"]
+    assert proxy_dense["fusion"]["max_normal_error"] == 10.0
+    assert proxy_dense["sgbm"]["p1_per_block_pixel"] == 8.0 and not proxy_dense["sgbm"]["crop_to_overlap"]
+    # Spelled out at their former values, the proxy's settings key its proxies as before they were
+    # spelled out, when the scored flights had those values too.
     former = reconstruct_cfg()
     del former.proxy.dense.fusion["max_normal_error"]
+    for key in ("p1_per_block_pixel", "crop_to_overlap"):
+        del former.proxy.dense.sgbm[key]
     former.dense.fusion.max_normal_error = 10.0
+    former.dense.sgbm.p1_per_block_pixel = 8.0
+    del former.dense.sgbm["crop_to_overlap"]
     assert proxy_settings(proxy_flight_config(cfg)) == proxy_settings(proxy_flight_config(former))
-    looser = reconstruct_cfg(**{"proxy.dense.fusion.max_normal_error": 20.0})
-    assert proxy_settings(proxy_flight_config(looser)) != proxy_settings(proxy_flight_config(cfg))
+    for changed in ("proxy.dense.fusion.max_normal_error", "proxy.dense.sgbm.p1_per_block_pixel"):
+        other = reconstruct_cfg(**{changed: 20.0})
+        assert proxy_settings(proxy_flight_config(other)) != proxy_settings(proxy_flight_config(cfg))
 
 
 def _flight_of_images(image_dir: Path, images, intr: Intrinsics) -> Path:

@@ -46,7 +46,7 @@ def composed(*overrides: str):
         (["reconstruct.dense.sgbm.block_size=4"], "reconstruct.dense.sgbm.block_size"),
         (["reconstruct.dense.sgbm.p1_per_block_pixel=-1"], "reconstruct.dense.sgbm.p1_per_block_pixel"),
         (
-            ["reconstruct.dense.sgbm.p2_per_block_pixel=4"],
+            ["reconstruct.dense.sgbm.p2_per_block_pixel=0.5"],
             "reconstruct.dense.sgbm.p2_per_block_pixel must be at least p1_per_block_pixel",
         ),
         (["+reconstruct.dense.num_partner=3"], "num_partner"),
