@@ -328,17 +328,24 @@ def select_global(
         indices of the chosen candidates, in order.
     """
     need = int(params["min_observations"])
-    observed = scores.multiply(scores >= float(params["min_score"])).tocsr()
+    observes = scores >= float(params["min_score"])
+    observed = scores.multiply(observes).tocsr()
     observed_t = observed.T.tocsr()
+    observes_t = observes.T.tocsr().astype(np.int64)
     tree = cKDTree(candidate_positions)
     deficit = (counts < need).astype(np.float32)
     gains = observed @ deficit
+    # How many under-observed samples each candidate observes, counted exactly: the float gains
+    # keep rounding residues after their samples are done, and a candidate whose only gain is such a
+    # residue observes nothing the plan still needs (the stage once added hundreds of those).
+    useful = observes.astype(np.int64) @ (counts < need).astype(np.int64)
     gains[taken] = 0.0
     chosen: list[int] = []
     while True:
-        best = int(np.argmax(gains))
-        if gains[best] <= 0.0:
+        eligible = (useful > 0) & ~taken
+        if not eligible.any():
             break
+        best = int(np.argmax(np.where(eligible, gains, -np.inf)))
         chosen.append(best)
         taken[best] = True
         gains[best] = 0.0
@@ -348,6 +355,7 @@ def select_global(
         if len(newly_done):
             # Those samples no longer count: remove their scores from every candidate's gain.
             gains -= np.asarray(observed_t[newly_done].sum(axis=0)).ravel()
+            useful -= np.asarray(observes_t[newly_done].sum(axis=0)).ravel()
         blocked = tree.query_ball_point(candidate_positions[best], float(params["adjacency_m"]))
         taken[blocked] = True
         gains[blocked] = 0.0
