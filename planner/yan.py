@@ -333,13 +333,12 @@ def select_global(
     observed_t = observed.T.tocsr()
     observes_t = observes.T.tocsr().astype(np.int64)
     tree = cKDTree(candidate_positions)
-    deficit = (counts < need).astype(np.float32)
-    gains = observed @ deficit
+    short = counts < need
+    gains = observed @ short.astype(np.float32)
     # How many under-observed samples each candidate observes, counted exactly: the float gains
     # keep rounding residues after their samples are done, and a candidate whose only gain is such a
     # residue observes nothing the plan still needs (the stage once added hundreds of those).
-    useful = observes.astype(np.int64) @ (counts < need).astype(np.int64)
-    gains[taken] = 0.0
+    useful = observes.astype(np.int64) @ short.astype(np.int64)
     chosen: list[int] = []
     while True:
         eligible = (useful > 0) & ~taken
@@ -348,7 +347,6 @@ def select_global(
         best = int(np.argmax(np.where(eligible, gains, -np.inf)))
         chosen.append(best)
         taken[best] = True
-        gains[best] = 0.0
         row = observed.getrow(best)
         counts[row.indices] += 1
         newly_done = row.indices[counts[row.indices] == need]
@@ -358,8 +356,6 @@ def select_global(
             useful -= np.asarray(observes_t[newly_done].sum(axis=0)).ravel()
         blocked = tree.query_ball_point(candidate_positions[best], float(params["adjacency_m"]))
         taken[blocked] = True
-        gains[blocked] = 0.0
-        gains[taken] = np.minimum(gains[taken], 0.0)
     return chosen
 
 
