@@ -4,11 +4,11 @@ Each planner plans on the scene's degraded ground truth (``reconstruct.proxy.deg
 the ground truth cropped to the evaluation region, decimated and noised; a stand-in for the proxy
 that needs no exploratory reconstruction) with its ``conf/planner/<name>.yaml`` settings and the
 run camera of ``conf/config.yaml``. Prints one row per (scene, planner): images, planning time, its
-largest stages, flight length, the planner's own objective before and after optimisation (Smith) or
-coverage figures, and the forecast every run records (``pipeline.forecast.predicted_coverage``:
-the share of the proxy's wall / roof / ground samples with >= 3 planned views within 1.3 d_t and
-60 deg of the normal). The machine is
-shared, so compare times within one run.
+largest stages, the time of the flight-time order every cell flies (``order_s``), flight length,
+the planner's own objective before and after optimisation (Smith) or coverage figures, and the
+forecast every run records (``pipeline.forecast.predicted_coverage``: the share of the proxy's
+wall / roof / ground samples with >= 3 planned views within 1.3 d_t and 60 deg of the normal). The
+machine is shared, so compare times within one run.
 
     uavplan-bench baselines                          # tomb church cathedral x all
     uavplan-bench baselines --scenes tomb --planners smith yan --json out.json
@@ -87,6 +87,7 @@ def main(argv=None) -> int:
 
     from drone.model import DroneSettings, flight_summary
     from evaluate.settings import EvaluationSettings
+    from pipeline.cell import ordered_by_flight_time
     from pipeline.forecast import predicted_coverage
     from pipeline.proxy import load_proxy
     from pipeline.settings import planner_setup
@@ -134,12 +135,19 @@ def main(argv=None) -> int:
             record = {"scene": scene_name, "planner": label, **budget_record, **plan_record(plan, seconds)}
             # CPU time of this process's threads: the machine is shared, wall time moves with it.
             record["plan_cpu_s"] = round(time.process_time() - c0, 1)
+            drone = DroneSettings.from_config(cfg.drone)
+            if str(cfg.survey.get("flight_order", "planner")) == "flight_time":
+                # The order every cell flies (pipeline.cell.plan_stage): part of planning a flight.
+                t0, c0 = time.perf_counter(), time.process_time()
+                plan = ordered_by_flight_time(plan, drone)
+                record["order_time_s"] = round(time.perf_counter() - t0, 2)
+                record["order_cpu_s"] = round(time.process_time() - c0, 2)
             # The same forecast run.py records for every planner (issue "Planner ours"'s count).
             settings = EvaluationSettings.from_config(cfg.evaluate)
             target_distance = float(cfg.survey.target_gsd_m) * intrinsics.focal_px
             forecast = predicted_coverage(proxy, plan.viewpoints, intrinsics, target_distance, settings)
             record.update({k: round(v, 1) for k, v in forecast.items()})
-            flight = flight_summary(plan.viewpoints, DroneSettings.from_config(cfg.drone))
+            flight = flight_summary(plan.viewpoints, drone)
             record["flight_time_min"] = round(flight["flight_time_s"] / 60.0, 1)
             records.append(record)
             extras = {
@@ -153,8 +161,8 @@ def main(argv=None) -> int:
                 flush=True,
             )
     print(
-        "\nscene      planner           images  plan_s   cpu_s  flight min  objective initial -> final"
-        "   3 good views (%): walls roofs ground"
+        "\nscene      planner           images  plan_s   cpu_s order_s  flight min"
+        "  objective initial -> final   3 good views (%): walls roofs ground"
     )
     for r in records:
         objective = " " * 20
@@ -165,7 +173,8 @@ def main(argv=None) -> int:
             for c in ("walls", "roofs", "ground")
         )
         row = f"{r['scene']:10s} {r['planner']:16s} {r['n_images']:7d}"
-        row += f" {r['plan_time_s']:7.1f} {r['plan_cpu_s']:7.1f} {r['flight_time_min']:11.1f}"
+        row += f" {r['plan_time_s']:7.1f} {r['plan_cpu_s']:7.1f} {r.get('order_time_s', float('nan')):7.1f}"
+        row += f" {r['flight_time_min']:11.1f}"
         print(f"{row}  {objective}                   {shares}")
     if args.json:
         write_json_atomic(args.json, records)
