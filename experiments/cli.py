@@ -25,6 +25,7 @@ COMMANDS = {
     "accuracy-sources": "experiments.accuracy_sources",
     "cell-pairs": "experiments.cell_pairs",
     "study-plan": "experiments.study_plan",
+    "proxies": "experiments.proxies",
 }
 
 

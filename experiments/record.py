@@ -26,14 +26,18 @@ import argparse
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
+import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 from experiments.runs import RunDirectoryError, read_metrics
+from pipeline.protocol import PROTOCOL
 from planner.budget import DEFAULT_LEVEL, level_rank
 from scene.io import write_text_atomic
 
@@ -188,6 +192,61 @@ def revision_worktree(revision: str, prefix: str = "uavplan_tree_") -> Iterator[
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False)
 
 
+def current_record(path: Path, version: int | None) -> dict | None:
+    """The record ``path`` (a ``metrics.json``) where it counts at the current protocol and planner
+    ``version``; None where it is missing, of another protocol or an older plan."""
+    if not path.is_file():
+        return None
+    metrics = json.loads(path.read_text())
+    if metrics.get("protocol") != PROTOCOL or metrics.get("planner_version") != version:
+        return None
+    return metrics
+
+
+def commit_with_retry(dest: Path, message: str, attempts: int = 5) -> None:
+    """``commit_record``, tried again while another git command holds the index (the queue commits
+    beside a developer's own commits)."""
+    for attempt in range(attempts):
+        try:
+            commit_record(dest, message)
+            return
+        except subprocess.CalledProcessError:
+            if attempt == attempts - 1:
+                raise
+            time.sleep(3.0)
+
+
+def free_gb(path: Path) -> float:
+    """Free disk space (GB) where ``path`` (or its nearest existing parent) lies."""
+    path = Path(path).resolve()
+    while not path.exists():
+        path = path.parent
+    return shutil.disk_usage(path).free / 1e9
+
+
+@dataclass(frozen=True)
+class QueueLimits:
+    """When the queue stops starting cells, and what it keeps.
+
+    Attributes:
+        deadline: epoch seconds (the session's end): no cell starts whose estimate does not fit
+            before it; None: no deadline.
+        estimates_h: wall hours per cell (``(scene, planner, seed, budget, gsd)``), from earlier
+            records (``experiments.study_plan.estimate_hours``); a cell without one counts
+            ``default_estimate_h``.
+        min_free_gb: no cell starts with less free disk than this where its run directory lies.
+        prune: delete a cell's run directory once its record is kept (images, models, clouds).
+        attempts: tries per cell (a failed one is recorded, then run again once).
+    """
+
+    deadline: float | None = None
+    estimates_h: dict | None = None
+    default_estimate_h: float = 0.75
+    min_free_gb: float = 20.0
+    prune: bool = True
+    attempts: int = 2
+
+
 def run_queue(
     cells: Sequence[Cell | tuple],
     preset: str,
@@ -197,20 +256,27 @@ def run_queue(
     commit: bool = True,
     revision: str = "HEAD",
     proxies: dict[tuple[str, int], str] | None = None,
+    limits: QueueLimits = QueueLimits(deadline=None, prune=False, min_free_gb=0.0, attempts=1),
+    env_extra: dict[str, str] | None = None,
+    records_root: Path = RECORDS,
 ) -> int:
     """Run the cells one after the other from a worktree of ``revision``; record (and commit) each one.
 
     A cell is ``(scene, planner, seed, budget[, gsd_m[, overrides]])``: gsd_m None is the configured
     GSD; ``overrides`` are that cell's own ``run.py`` overrides (before the queue's ``overrides``).
+    A cell counts as done when its record is of the current protocol and its planner's current
+    version (``current_record``), failed or not; ``force`` runs it again.
     ``proxies``: the proxy (``proxy_fingerprint``) each scene and seed's recorded cells planned on. A
-    cell that planned on another one (its exploration rebuilt differently in this session) is
-    recorded under ``<preset>_proxy_<fingerprint>`` instead, and the queue stops: its front would mix
-    two proxies. A group's first cell sets its proxy.
+    cell that planned on another one is recorded under ``<preset>_proxy_<fingerprint>`` instead, and
+    the queue stops: its front would mix two proxies. A group's first cell sets its proxy.
+    ``limits``: the deadline, the disk floor, pruning and retries (``QueueLimits``).
 
     Returns the number of cells that failed (a cell on another proxy counts).
 
     Raises:
         ValueError: ``revision`` names no commit of the repository."""
+    from pipeline.protocol import planner_version
+
     found = subprocess.run(
         ["git", "-C", str(ROOT), "rev-parse", "--verify", "--quiet", "--short", f"{revision}^{{commit}}"],
         capture_output=True,
@@ -231,7 +297,7 @@ def run_queue(
     cells = [complete(cell) for cell in cells]
     if commit:
         records = [
-            os.path.relpath(record_dir(preset, *cell[:5]) / name, ROOT)
+            os.path.relpath(record_dir(preset, *cell[:5], root=records_root) / name, ROOT)
             for cell in cells
             for name in ("metrics.json", "plan.json")
         ]
@@ -260,19 +326,44 @@ def run_queue(
             f"note: the cells run the committed code at {head}; uncommitted changes are not in them",
             flush=True,
         )
+    versions = {planner: planner_version(planner) for planner in {cell[1] for cell in cells}}
     failed = 0
     proxies = dict(proxies or {})
     with revision_worktree(head, prefix="uavplan_queue_") as tree:
-        env = dict(os.environ, UAVPLAN_CACHE=str(ROOT / "cache"), PYTHONPATH=str(tree))
+        env = dict(
+            os.environ,
+            UAVPLAN_CACHE=str(ROOT / "cache"),
+            UAVPLAN_PROXIES=str(ROOT / "proxies"),
+            PYTHONPATH=str(tree),
+            **(env_extra or {}),
+        )
         # the shared meshes' folder (conf/scene/school.yaml) as seen from the checkout, not the worktree
         env.setdefault("UAVPLAN_MESHES", str((ROOT.parent / "shared" / "data" / "meshes").resolve()))
         for scene, planner, seed, budget, gsd_m, cell_overrides in cells:
             name = f"{scene}/{planner}/{seed}/{budget}/{gsd_m:g}"
-            recorded = record_dir(preset, scene, planner, seed, budget, gsd_m) / "metrics.json"
-            if recorded.is_file() and not force:
+            recorded = record_dir(preset, scene, planner, seed, budget, gsd_m, records_root) / "metrics.json"
+            if not force and current_record(recorded, versions[planner]) is not None:
                 print(f"{name}: recorded already (--force runs it again)", flush=True)
                 continue
+            estimate_h = (limits.estimates_h or {}).get(
+                (scene, planner, seed, budget, gsd_m), limits.default_estimate_h
+            )
+            if limits.deadline is not None and time.time() + estimate_h * 3600.0 > limits.deadline:
+                left_min = max(limits.deadline - time.time(), 0.0) / 60.0
+                print(
+                    f"{name}: estimated {estimate_h * 60:.0f} min, {left_min:.0f} min left before the "
+                    "deadline: queue stopped (the same command resumes it)",
+                    flush=True,
+                )
+                return failed
             run_dir = (Path(study) / cell_path(scene, planner, seed, budget, gsd_m)).resolve()
+            if limits.min_free_gb and free_gb(run_dir) < limits.min_free_gb:
+                print(
+                    f"{name}: {free_gb(run_dir):.1f} GB free under {run_dir.parent}, below the queue's "
+                    f"{limits.min_free_gb:g} GB: queue stopped (free disk, or lower --min-free-gb)",
+                    flush=True,
+                )
+                return failed + 1
             command = [
                 sys.executable,
                 "run.py",
@@ -285,32 +376,40 @@ def run_queue(
                 *cell_overrides,
                 *overrides,
             ]
-            print(f"{name}: running at {head} into {run_dir}", flush=True)
-            code = subprocess.run(command, cwd=tree, env=env).returncode
-            if not (run_dir / "metrics.json").is_file():
-                print(f"{name}: exit {code} and no metrics.json: nothing recorded", flush=True)
-                failed += 1
-                continue
-            metrics = read_metrics(run_dir)
-            other = other_proxy(proxies, metrics)
-            dest, metrics = record_cell(run_dir, preset if other is None else proxy_preset(preset, other))
-            failed += metrics.get("status", "ok") != "ok" or other is not None
-            line = summary_line(metrics) + f" (code {head})"
-            print(line, flush=True)
-            if commit:
-                commit_record(dest, line)
-            if other is not None:
-                expected = proxies[(scene, int(seed))]
-                print(
-                    f"error: {scene} / seed {seed}: this cell planned on proxy {other[:8]}, the group's "
-                    f"recorded cells on {expected[:8]}; recorded under {os.path.relpath(dest, ROOT)}, "
-                    "queue stopped "
-                    "(run the group again on one proxy, or restore the proxy it planned on)",
-                    flush=True,
-                )
-                return failed
-            if metrics.get("proxy_fingerprint"):
-                proxies.setdefault((scene, int(seed)), str(metrics["proxy_fingerprint"]))
+            for attempt in range(1, max(limits.attempts, 1) + 1):
+                shutil.rmtree(run_dir, ignore_errors=True)
+                print(f"{name}: running at {head} into {run_dir} (attempt {attempt})", flush=True)
+                code = subprocess.run(command, cwd=tree, env=env).returncode
+                if not (run_dir / "metrics.json").is_file():
+                    print(f"{name}: exit {code} and no metrics.json: nothing recorded", flush=True)
+                    ok = False
+                    continue
+                metrics = read_metrics(run_dir)
+                other = other_proxy(proxies, metrics)
+                folder = preset if other is None else proxy_preset(preset, other)
+                dest, metrics = record_cell(run_dir, folder, records_root)
+                ok = metrics.get("status", "ok") == "ok"
+                line = summary_line(metrics) + f" (code {head}, protocol {metrics.get('protocol')})"
+                print(line, flush=True)
+                if commit:
+                    commit_with_retry(dest, line)
+                if other is not None:
+                    expected = proxies[(scene, int(seed))]
+                    print(
+                        f"error: {scene} / seed {seed}: this cell planned on proxy {other[:8]}, the group's "
+                        f"recorded cells on {expected[:8]}; recorded under {os.path.relpath(dest, ROOT)}, "
+                        "queue stopped "
+                        "(run the group again on one proxy, or restore the proxy it planned on)",
+                        flush=True,
+                    )
+                    return failed + 1
+                if ok:
+                    if metrics.get("proxy_fingerprint"):
+                        proxies.setdefault((scene, int(seed)), str(metrics["proxy_fingerprint"]))
+                    break
+            failed += not ok
+            if limits.prune:
+                shutil.rmtree(run_dir, ignore_errors=True)
     return failed
 
 

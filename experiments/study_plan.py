@@ -1,27 +1,31 @@
-"""The study: its cells in the order they run, and what they cost.
+"""The study at protocol 1: its cells in the order they run, what they cost, and the queue.
 
-    uavplan-study study-plan                                  # the queue by phase, with cell-hours
-    uavplan-study study-plan --phases 1 2 --run --revision REV [--set KEY=VALUE]
+    uavplan-study study-plan                               # the cells by phase, cell-hours left
+    uavplan-study study-plan --run --until 15:40           # resume the queue until 15:40 (any machine)
 
-``--run`` hands the cells to the record queue (``experiments.record``): one at a time from a worktree
-of ``REV`` (every cell of the study from one revision), each record committed to
-``results/cells/<--preset>/`` as it finishes, a cell recorded already skipped. So the study is
-resumed on any machine by the same command.
+``--run`` hands the cells left to the record queue (``experiments.record.run_queue``): one at a time
+from a worktree of HEAD, each record committed to ``results/cells/protocol<N>/`` as it finishes.
+A cell counts as done when its record is of the current protocol and of its planner's current
+version (``pipeline.protocol``): a planner whose version is bumped has its cells run again, nothing
+else. The committed proxies the cells need (``proxies/default/<scene>/seed<k>``) are built and
+committed first where one is missing. No cell starts whose estimate does not fit before
+``--until``; none starts with less free disk than ``--min-free-gb``; a failed cell is recorded with
+its error line and run once more; a run directory is deleted once its record is kept.
 
 The phases, each a complete answer before the next starts:
 
 1. the fronts at seed 0 on the tomb and the church: each planner's own budget knob at the survey's
-   GSD (3 cm);
-2. the GSD axis at seed 0 on the tomb and the church: every planner at its default knob at 2 and
-   4.5 cm (3 cm is phase 1's default cell);
-3. seeds 1 and 2 of phases 1 and 2;
-4. the cathedral's own-knob fronts (low, default, high), seed 0;
+   GSD (3 cm), with the oracle beside every cell;
+2. the cathedral: every planner at its default, seed 0;
+3. the noise floor: ours' and Smith's default church cells three times each from the same committed
+   proxy, in the default (non-deterministic) mode, recorded under
+   ``results/cells/protocol<N>_noise/rep<k>/``: the reconstruction's own spread, which the tables'
+   and fronts' tie rule reads (a proxy's spread is what seeds measure);
+4. seeds 1 and 2 of phase 1 (oracle off: seed 0's oracle answers plan against matcher);
 5. the shared meshes (school, power plant): every planner at its default, seed 0;
-6. Yan at the seed paper's scale (3000+ images), tomb, seed 0;
-7. the noise floor: ours' and Smith's default church cells three times each from nothing (each
-   repeat its own stage cache, so its own exploration and proxy; ``reconstruct.deterministic=false``),
-   recorded under ``results/cells/<--preset>_noise/rep<k>/`` for ``uavplan-study noise-floor
-   --summarise``, whose floor the tables' and fronts' tie rule reads.
+6. the GSD axis at seed 0 on the tomb and the church: every planner at its default knob at 2 and
+   4.5 cm (3 cm is phase 1's default cell);
+7. Yan at the seed paper's scale (3000+ images), tomb, seed 0.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from pathlib import Path
 import pandas as pd
 
 from experiments.runs import RunDirectoryError, load_runs, runs_frame
+from pipeline.protocol import PROTOCOL, STUDY_SCENES
 from planner.budget import DEFAULT_LEVEL, level_rank
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -53,25 +58,26 @@ OWN_LEVELS = {
     "ours": ("lowest", "low", "default", "high"),
     "ours_plus": ("lowest", "low", "default", "high"),
 }
-STUDY_PRESET = "settled"  # its records: results/cells/settled/; its run directories: study/settled/
+STUDY_PRESET = f"protocol{PROTOCOL}"  # records: results/cells/protocol<N>/; runs: study/protocol<N>/
 SURVEY_GSD_M = 0.03  # conf/config.yaml survey.target_gsd_m: the own-knob axis flies at it
 GSD_AXIS_M = (0.045, 0.02)  # the GSD axis besides the survey's, coarsest first
 FRONT_SCENES = ("tomb", "church")
 MESH_SCENES = ("school", "powerplant")
 SEEDS = (0, 1, 2)
 # Overrides a scene needs in every cell (conf/scene/powerplant.yaml says why).
-SCENE_OVERRIDES = {"powerplant": ("exploration=lawnmower_orbit",)}
-# Every cell but the noise floor's reconstructs in the deterministic mode (results/reproducibility.md;
-# about 8 % more wall time): a session that starts on a new machine rebuilds each scene's exploration,
-# and in the default mode that gives another proxy (two sessions' tomb proxies differed, and so did
-# the plans on them by up to 5 points of completeness), so a front run over several sessions would
-# mix proxies. The queue stops where a rebuilt proxy still differs (experiments.record.run_queue).
-STUDY_MODE = ("reconstruct.deterministic=true",)
+SCENE_OVERRIDES = {scene: overrides for scene, overrides in STUDY_SCENES.items() if overrides}
+# Seeds 1 and 2 without the oracle: seed 0's answers plan against matcher, and it costs a fusion.
+NO_ORACLE = ("reconstruct.oracle_beside=false",)
+# The noise floor's repeats reconstruct in the default, non-deterministic mode (every other cell is
+# deterministic, conf/reconstruct/default.yaml), each with a stage cache of its own.
+NOISE_MODE = ("reconstruct.deterministic=false",)
 # The noise floor's cells (the issue asks for ours and one baseline on the church) and repeats.
 NOISE_CELLS = (("church", "ours"), ("church", "smith"))
 NOISE_REPEATS = 3
-# Where the cell-hours of a cell not run before are guessed from: the records of earlier studies.
-PAST_RECORDS = ROOT / "results" / "cells"
+# Where the cell-hours of a cell not run before are guessed from: this study's records, then those
+# of the studies before protocol 1 (archive/results_before_protocol1/cells).
+PAST_RECORDS = (ROOT / "results" / "cells", ROOT / "archive" / "results_before_protocol1" / "cells")
+BUNDLE_HOURS = 0.2  # building and committing one scene's proxy (about 6-10 minutes on 2 cores)
 UNKNOWN_CELL_H = 0.75  # a cell no earlier record resembles (a mesh scene, a new level)
 
 
@@ -105,44 +111,42 @@ def study_cells() -> list[StudyCell]:
     """Every cell of the study, in the order the queue runs them."""
     cells: list[StudyCell] = []
 
-    def add(phase, scene, planner, seed, budget=DEFAULT_LEVEL, gsd_m=SURVEY_GSD_M):
-        cells.append(StudyCell(phase, scene, planner, seed, budget, gsd_m, SCENE_OVERRIDES.get(scene, ())))
+    def add(phase, scene, planner, seed, budget=DEFAULT_LEVEL, gsd_m=SURVEY_GSD_M, extra=()):
+        overrides = (*SCENE_OVERRIDES.get(scene, ()), *extra)
+        cells.append(StudyCell(phase, scene, planner, seed, budget, gsd_m, overrides))
 
-    def fronts(phase, seed):
+    def fronts(phase, seed, extra=()):
         for scene in FRONT_SCENES:
             for planner in QUEUE_ORDER:
                 for level in OWN_LEVELS[planner]:
-                    add(phase, scene, planner, seed, level)
-
-    def gsd_axis(phase, seed):
-        for scene in FRONT_SCENES:
-            for planner in QUEUE_ORDER:
-                for gsd in GSD_AXIS_M:
-                    add(phase, scene, planner, seed, DEFAULT_LEVEL, gsd)
+                    add(phase, scene, planner, seed, level, extra=extra)
 
     fronts(1, 0)
-    gsd_axis(2, 0)
-    for seed in SEEDS[1:]:
-        fronts(3, seed)
-        gsd_axis(3, seed)
-    for planner in PLANNERS:
-        for level in ("low", DEFAULT_LEVEL, "high"):
-            add(4, "cathedral", planner, 0, level)
-    for scene in MESH_SCENES:
-        for planner in PLANNERS:
-            add(5, scene, planner, 0)
-    add(6, "tomb", "yan", 0, "highest")
+    for planner in QUEUE_ORDER:
+        add(2, "cathedral", planner, 0)
     for repeat in range(NOISE_REPEATS):
         for scene, planner in NOISE_CELLS:
-            cells.append(StudyCell(7, scene, planner, 0, repeat=repeat))
+            cells.append(StudyCell(3, scene, planner, 0, overrides=NOISE_MODE, repeat=repeat))
+    for seed in SEEDS[1:]:
+        fronts(4, seed, NO_ORACLE)
+    for scene in MESH_SCENES:
+        for planner in QUEUE_ORDER:
+            add(5, scene, planner, 0)
+    for scene in FRONT_SCENES:
+        for planner in QUEUE_ORDER:
+            for gsd in GSD_AXIS_M:
+                add(6, scene, planner, 0, DEFAULT_LEVEL, gsd)
+    add(7, "tomb", "yan", 0, "highest")
     return cells
 
 
-def past_cell_hours(root: Path) -> pd.DataFrame:
+def past_cell_hours(roots: Path | Sequence[Path]) -> pd.DataFrame:
     """Median wall hours of earlier cells per (scene, planner, budget), from the records of each
-    study under ``root`` (each study's cells its own samples)."""
+    study under ``roots`` (each study's cells its own samples)."""
     runs = []
-    for path in sorted(p for p in Path(root).iterdir() if p.is_dir()):
+    roots = [roots] if isinstance(roots, Path) else list(roots)
+    studies = [p for root in roots if Path(root).is_dir() for p in sorted(Path(root).iterdir()) if p.is_dir()]
+    for path in studies:
         try:
             runs += load_runs([path])
         except RunDirectoryError:
@@ -186,16 +190,20 @@ def plan_table(cells: Sequence[StudyCell], past: pd.DataFrame, recorded: set[str
 
 
 def recorded_specs(preset: str, cells: Sequence[StudyCell]) -> set[str]:
-    """The cells of ``cells`` that have a record under ``results/cells/<preset>`` (a repeat's under its
-    own folder)."""
-    from experiments.record import record_dir
+    """The cells of ``cells`` whose record under ``results/cells/<preset>`` (a repeat's under its own
+    folder) counts: of the current protocol and of its planner's current version."""
+    from experiments.record import current_record, record_dir
+    from pipeline.protocol import planner_version
 
+    versions = {planner: planner_version(planner) for planner in {c.planner for c in cells}}
     return {
         c.spec()
         for c in cells
-        if (
-            record_dir(c.preset(preset), c.scene, c.planner, c.seed, c.budget, c.gsd_m) / "metrics.json"
-        ).is_file()
+        if current_record(
+            record_dir(c.preset(preset), c.scene, c.planner, c.seed, c.budget, c.gsd_m) / "metrics.json",
+            versions[c.planner],
+        )
+        is not None
     }
 
 
@@ -211,11 +219,6 @@ def recorded_fields(preset: str, cells: Sequence[StudyCell], key: str) -> dict[s
         if path.is_file():
             values[c.spec()] = str(json.loads(path.read_text()).get(key) or "")
     return values
-
-
-def recorded_commits(preset: str, cells: Sequence[StudyCell]) -> dict[str, str]:
-    """The code commit (``metrics.json``'s ``code_commit``) of every recorded cell of ``cells``, by spec."""
-    return recorded_fields(preset, cells, "code_commit")
 
 
 def proxies_per_group(
@@ -235,45 +238,149 @@ def proxies_per_group(
     return groups
 
 
-def foreign_records(commits: dict[str, str], revision_sha: str) -> list[str]:
-    """The specs recorded at another commit than ``revision_sha`` (full or abbreviated)."""
-    return sorted(
-        spec
-        for spec, sha in commits.items()
-        if not (sha and (sha.startswith(revision_sha) or revision_sha.startswith(sha)))
-    )
+def cell_estimates(cells: Sequence[StudyCell], past: pd.DataFrame) -> dict[tuple, float]:
+    """``estimate_hours`` of each cell, keyed as the record queue asks (scene, planner, seed, budget,
+    gsd)."""
+    return {(c.scene, c.planner, c.seed, c.budget, c.gsd_m): estimate_hours(c, past) for c in cells}
+
+
+def ensure_bundles(
+    cells: Sequence[StudyCell], deadline: float | None, commit: bool = True, revision: str = "HEAD"
+) -> list[tuple[str, int]]:
+    """Build, export and commit the committed proxy (``proxies/default/<scene>/seed<k>``) of every
+    scene and seed of ``cells`` that has none at the current protocol, from a worktree of
+    ``revision``; none is started that would not finish before ``deadline``. Returns the scenes and
+    seeds still without one."""
+    import json
+    import os
+    import subprocess
+    import time
+
+    from experiments.proxies import commit_bundle
+    from experiments.record import revision_worktree
+    from pipeline.proxy_bundle import MANIFEST, bundle_dir
+
+    wanted = list(dict.fromkeys((c.scene, c.seed) for c in cells))
+
+    def missing(scene: str, seed: int) -> bool:
+        path = bundle_dir("default", scene, seed, ROOT / "proxies") / MANIFEST
+        return not path.is_file() or json.loads(path.read_text()).get("protocol") != PROTOCOL
+
+    todo = [pair for pair in wanted if missing(*pair)]
+    if not todo:
+        return []
+    left = []
+    with revision_worktree(revision, prefix="uavplan_proxies_") as tree:
+        env = dict(os.environ, UAVPLAN_CACHE=str(ROOT / "cache"), UAVPLAN_PROXIES=str(ROOT / "proxies"))
+        env.setdefault("UAVPLAN_MESHES", str((ROOT.parent / "shared" / "data" / "meshes").resolve()))
+        env["PYTHONPATH"] = str(tree)
+        for scene, seed in todo:
+            if deadline is not None and time.time() + BUNDLE_HOURS * 3600.0 > deadline:
+                left.append((scene, seed))
+                continue
+            print(f"{scene}/{seed}: building its committed proxy", flush=True)
+            command = [sys.executable, "-m", "experiments.proxies", "build", f"{scene}/{seed}", "--force"]
+            done = subprocess.run(command, cwd=tree, env=env)
+            if done.returncode != 0:
+                print(f"{scene}/{seed}: the proxy build failed (exit {done.returncode})", flush=True)
+                left.append((scene, seed))
+                continue
+            if commit:
+                commit_bundle(
+                    bundle_dir("default", scene, seed, ROOT / "proxies"),
+                    f"Proxy bundle: {scene} seed {seed} at protocol {PROTOCOL} (uavplan-study proxies build)",
+                )
+    return left
 
 
 def run_cells(
-    cells: Sequence[StudyCell], preset: str, study: Path, overrides: Sequence[str], revision: str
+    cells: Sequence[StudyCell],
+    preset: str,
+    study: Path,
+    overrides: Sequence[str],
+    limits=None,
+    commit: bool = True,
 ) -> int:
-    """Run ``cells`` through the record queue, each group of one record folder in order: the study's
-    cells in the deterministic mode (``STUDY_MODE``), each scene and seed on the proxy its recorded
-    cells planned on; a noise repeat in the default mode with a stage cache of its own. Returns the
-    number of failed cells."""
-    from experiments.record import run_queue
+    """Run ``cells`` through the record queue, each group of one record folder in order (a noise
+    repeat with a stage cache of its own), each scene and seed on its committed proxy, within
+    ``limits`` (``experiments.record.QueueLimits``). Returns the number of failed cells."""
+    from experiments.record import QueueLimits, run_queue
 
+    limits = limits or QueueLimits()
     failed = 0
-    groups: dict[str, list[StudyCell]] = {}
+    # One queue run per stretch of cells of one record folder and one scene and seed, the proxy
+    # committed just before its first cell (a scene explored hours before its cells would hold
+    # the queue's first answers back).
+    stretches: list[list[StudyCell]] = []
     for cell in cells:
-        groups.setdefault(cell.preset(preset), []).append(cell)
-    for folder, group in groups.items():
-        repeat = group[0].repeat
-        extra = list(overrides)
+        last = stretches[-1][-1] if stretches else None
+        same = last is not None and (last.preset(preset), last.scene, last.seed) == (
+            cell.preset(preset),
+            cell.scene,
+            cell.seed,
+        )
+        if same:
+            stretches[-1].append(cell)
+        else:
+            stretches.append([cell])
+    for stretch in stretches:
+        if limits.deadline is not None and time_left_h(limits.deadline) <= 0:
+            break
+        first = stretch[0]
+        if ensure_bundles(stretch, limits.deadline, commit):
+            where = f"{first.scene}/{first.seed}"
+            print(f"note: no committed proxy for {where} yet: its cells wait for the next run", flush=True)
+            continue
+        folder = first.preset(preset)
         runs = Path(study)
+        extra = list(overrides)
         proxies = None
-        if repeat is None:
-            extra += STUDY_MODE
+        if first.repeat is None:
             proxies = group_proxies(
-                proxies_per_group(group, recorded_fields(preset, group, "proxy_fingerprint"))
+                proxies_per_group(stretch, recorded_fields(preset, stretch, "proxy_fingerprint"))
             )
         else:
-            runs = runs.parent / f"{runs.name}_noise" / f"rep{repeat}"
-            extra += ["reconstruct.deterministic=false", f"cache_dir={(runs / 'cache').resolve()}"]
+            runs = runs.parent / f"{runs.name}_noise" / f"rep{first.repeat}"
+            extra += [f"cache_dir={(runs / 'cache').resolve()}"]
         failed += run_queue(
-            [c.queue_cell() for c in group], folder, runs, extra, revision=revision, proxies=proxies
+            [c.queue_cell() for c in stretch],
+            folder,
+            runs,
+            extra,
+            proxies=proxies,
+            limits=limits,
+            commit=commit,
         )
     return failed
+
+
+def time_left_h(deadline: float) -> float:
+    import time
+
+    return (deadline - time.time()) / 3600.0
+
+
+def parse_until(text: str, now=None) -> float:
+    """``HH:MM`` (today, or tomorrow where that has passed) or an ISO date-time -> epoch seconds.
+
+    Raises:
+        ValueError: neither form."""
+    import datetime as dt
+
+    now = now or dt.datetime.now()
+    try:
+        clock = dt.datetime.strptime(text, "%H:%M").time()
+    except ValueError:
+        try:
+            return dt.datetime.fromisoformat(text).timestamp()
+        except ValueError:
+            raise ValueError(
+                f"--until {text!r}: give HH:MM (e.g. 15:40) or a date-time (2026-12-07T15:40)"
+            ) from None
+    when = dt.datetime.combine(now.date(), clock)
+    if when <= now:
+        when += dt.timedelta(days=1)
+    return when.timestamp()
 
 
 def group_proxies(counts: dict[tuple[str, int], dict[str, int]]) -> dict[tuple[str, int], str]:
@@ -281,13 +388,6 @@ def group_proxies(counts: dict[tuple[str, int], dict[str, int]]) -> dict[tuple[s
     counts; records without a fingerprint left out)."""
     known = {key: {fp: n for fp, n in c.items() if fp != "none"} for key, c in counts.items()}
     return {key: max(c, key=c.get) for key, c in known.items() if c}
-
-
-def default_mode_records(preset: str, cells: Sequence[StudyCell]) -> list[str]:
-    """The specs of ``cells`` (noise repeats left out) recorded in the default, non-deterministic mode:
-    their proxies cannot be rebuilt, so they do not belong in a front with the study's cells."""
-    modes = recorded_fields(preset, [c for c in cells if c.repeat is None], "deterministic")
-    return sorted(spec for spec, mode in modes.items() if mode != "True")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -300,8 +400,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--study", type=Path, default=Path("study") / STUDY_PRESET, help="run directories")
     parser.add_argument("--list", action="store_true", help="print the cells left, one per line")
     parser.add_argument("--run", action="store_true", help="run the cells left through the record queue")
-    parser.add_argument("--revision", default="HEAD", help="the commit every cell runs (with --run)")
-    parser.add_argument("--set", action="append", default=[], help="a run.py override for every cell")
+    parser.add_argument("--until", help="with --run: start no cell that would not finish by HH:MM")
+    parser.add_argument(
+        "--min-free-gb", type=float, default=20.0, help="with --run: start no cell with less free disk"
+    )
+    parser.add_argument("--keep-runs", action="store_true", help="keep run directories after recording")
+    parser.add_argument(
+        "--set", action="append", default=[], help="a run.py override for every cell (off the protocol)"
+    )
     args = parser.parse_args(argv)
     cells = study_cells()
     if args.phases:
@@ -319,6 +425,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         cells = [c for c in cells if c.planner in args.planners]
     for cell in cells:
         level_rank(cell.budget)
+    try:
+        deadline = parse_until(args.until) if args.until else None
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     recorded = recorded_specs(args.preset, cells)
     left = [c for c in cells if c.spec() not in recorded]
     if args.list:
@@ -326,6 +437,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     past = past_cell_hours(PAST_RECORDS)
     table = plan_table(cells, past, recorded)
+    print(f"protocol {PROTOCOL}, records in results/cells/{args.preset}/")
     print(table.to_string(index=False, float_format=lambda v: f"{v:.1f}"))
     total = float(table["hours_left"].sum())
     print(f"{len(left)} of {len(cells)} cells left, about {total:.0f} cell-hours on 2 cores")
@@ -335,41 +447,19 @@ def main(argv: Sequence[str] | None = None) -> int:
             listed = ", ".join(
                 f"{fp[:8]}: {n} cells" for fp, n in sorted(counts.items(), key=lambda kv: -kv[1])
             )
-            print(
-                f"note: {scene} / seed {seed} planned on {len(counts)} proxies ({listed}), "
-                "each rebuilt in another session"
-            )
+            print(f"note: {scene} / seed {seed} planned on {len(counts)} proxies ({listed})")
     if not args.run:
         return 0
-    # Every cell of the study comes from one revision: a record of another would sit in its tables.
-    import subprocess
+    from experiments.record import QueueLimits
 
-    found = subprocess.run(
-        ["git", "-C", str(ROOT), "rev-parse", "--verify", "--quiet", f"{args.revision}^{{commit}}"],
-        capture_output=True,
-        text=True,
+    limits = QueueLimits(
+        deadline=deadline,
+        estimates_h=cell_estimates(left, past),
+        default_estimate_h=UNKNOWN_CELL_H,
+        min_free_gb=args.min_free_gb,
+        prune=not args.keep_runs,
     )
-    if found.returncode != 0:
-        print(f"error: --revision {args.revision!r} names no commit", file=sys.stderr)
-        return 2
-    foreign = foreign_records(recorded_commits(args.preset, cells), found.stdout.strip())
-    if foreign:
-        print(
-            f"error: {len(foreign)} cell(s) of results/cells/{args.preset} were recorded at another revision "
-            f"than {args.revision} (first: {foreign[0]}); move them aside or run at their revision",
-            file=sys.stderr,
-        )
-        return 2
-    default_mode = default_mode_records(args.preset, cells)
-    if default_mode:
-        print(
-            f"error: {len(default_mode)} cell(s) of results/cells/{args.preset} were recorded in the default "
-            f"(non-deterministic) mode (first: {default_mode[0]}); move them aside: the study runs "
-            f"{' '.join(STUDY_MODE)}",
-            file=sys.stderr,
-        )
-        return 2
-    failed = run_cells(left, args.preset, args.study, args.set, args.revision)
+    failed = run_cells(left, args.preset, args.study, args.set, limits)
     return 1 if failed else 0
 
 

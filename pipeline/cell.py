@@ -25,6 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 from drone.model import DroneSettings, flight_summary
 from evaluate.settings import EvaluationSettings
 from pipeline.forecast import predicted_coverage
+from pipeline.protocol import protocol_fields
 from planner.budget import DEFAULT_LEVEL
 from reconstruct.timing import cpu_seconds
 from scene.camera import Intrinsics
@@ -176,6 +177,7 @@ def run_cell(cfg: DictConfig, run_dir: Path, record: dict) -> None:
     record["stage"] = "config"
     settings = cell_settings(cfg)  # every bad setting fails here, before the scene loads
     record.update(settings.budget)
+    record.update(protocol_fields(cfg, scene_label(cfg)))
     seed = int(cfg.seed)
 
     record["stage"] = "scene"

@@ -20,6 +20,7 @@ import numpy as np
 import trimesh
 
 from pipeline.cache import cache_key, cached_entry
+from pipeline.proxy_bundle import CLOUD_FILE, MANIFEST, find_bundle, install_bundle, load_cloud, sha256
 from reconstruct.proxy import oriented_cloud
 from scene.base import Box, Scene
 from scene.camera import Intrinsics
@@ -70,19 +71,26 @@ class ProxyInputs:
         )
 
 
-def exploration_cache_key(scene: Scene, inputs: ProxyInputs) -> str:
+def exploration_cache_key(scene: Scene, inputs: ProxyInputs, for_bundle: bool = False) -> str:
     """Content key of the exploratory flight + proxy: the scene's content and the stage's settings
     (the ``reconstruct`` settings as the exploratory flight runs them: ``proxy.dense`` in effect, so
-    a change to the scored flights' dense settings leaves proxies valid)."""
+    a change to the scored flights' dense settings leaves proxies valid).
+
+    ``for_bundle``: the key of a committed proxy (``pipeline.proxy_bundle``), without the
+    deterministic mode: a committed proxy is one fixed mesh, whichever mode the cell then
+    reconstructs its own flight in (the noise floor's cells plan on the study's proxy)."""
     from reconstruct.pipeline import proxy_flight_config, proxy_settings
 
+    settings = proxy_settings(proxy_flight_config(inputs.reconstruct))
+    if for_bundle:
+        settings.pop("deterministic", None)
     return cache_key(
         scene.fingerprint,
         plain(inputs.scene),
         plain(inputs.camera),
         plain(inputs.exploration),
         plain(inputs.render),
-        proxy_settings(proxy_flight_config(inputs.reconstruct)),
+        settings,
         int(inputs.seed),
     )
 
@@ -96,7 +104,9 @@ def load_proxy(entry: Path) -> trimesh.Trimesh:
         raise FileNotFoundError(f"{entry / PROXY_FILE}: no proxy (not an exploration cache entry)")
     proxy = trimesh.load(entry / PROXY_FILE, force="mesh", process=False)
     dense_ply = entry / "recon" / "dense.ply"
-    if dense_ply.is_file():
+    if (entry / CLOUD_FILE).is_file():  # a committed bundle's (pipeline.proxy_bundle)
+        proxy.metadata[PROXY_CLOUD_KEY] = load_cloud(entry / CLOUD_FILE)
+    elif dense_ply.is_file():
         box = Box.from_points(proxy.vertices)
         proxy.metadata[PROXY_CLOUD_KEY] = oriented_cloud(
             dense_ply, box.expanded(1.0, 1.0, 1.0), CLOUD_VOXEL_M
@@ -106,13 +116,17 @@ def load_proxy(entry: Path) -> trimesh.Trimesh:
     return proxy
 
 
-def build_exploration_proxy(scene: Scene, intrinsics: Intrinsics, inputs: ProxyInputs) -> tuple[Path, dict]:
+def build_exploration_proxy(
+    scene: Scene, intrinsics: Intrinsics, inputs: ProxyInputs, use_bundle: bool = True
+) -> tuple[Path, dict]:
     """Fly, render and reconstruct the exploratory flight once; return its cache entry.
 
     Args:
         scene: the ground-truth scene (rendered, never shown to the planner).
         intrinsics: the survey camera (``inputs.camera`` as an ``Intrinsics``).
         inputs: the stage's config groups.
+        use_bundle: install the committed proxy of this exploration where there is one
+            (``pipeline.proxy_bundle``); false builds it here (``uavplan-study proxies build``).
 
     Returns:
         (the entry folder holding ``proxy.ply``, ``plan/``, ``images/``, ``recon/``; record with the
@@ -143,7 +157,22 @@ def build_exploration_proxy(scene: Scene, intrinsics: Intrinsics, inputs: ProxyI
         }
 
     key = exploration_cache_key(scene, inputs)
-    entry, record = cached_entry(inputs.cache_dir, "exploration", key, build)
+    bundle_key = exploration_cache_key(scene, inputs, for_bundle=True)
+    bundle = find_bundle(bundle_key) if use_bundle else None
+    if bundle is None:
+        entry, record = cached_entry(inputs.cache_dir, "exploration", key, build)
+    else:
+        # The committed proxy of this exploration (the study's): installed, not rebuilt, so every
+        # machine plans on the same one. Keyed by its manifest too: a re-exported bundle reinstalls.
+        def install(entry: Path) -> dict:
+            log.info("exploration: the committed proxy %s", bundle)
+            return install_bundle(bundle, entry, render_images)
+
+        def render_images(viewpoints, kinds, out: Path) -> None:
+            render_flight(scene, viewpoints, intrinsics, out, inputs.render, kinds=kinds)
+
+        installed = f"{bundle_key}-{sha256(bundle / MANIFEST)[:8]}"
+        entry, record = cached_entry(inputs.cache_dir, "exploration_bundle", installed, install)
     # ``cached``/``proxy_cached`` say whether build_proxy reused its own work folder; a cache entry is
     # always built fresh, so they read false even on a hit. ``cache_hit`` is the field that tells.
     record = {k: v for k, v in record.items() if k not in WORKDIR_REUSE_FLAGS}

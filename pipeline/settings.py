@@ -71,6 +71,9 @@ def planner_setup(cfg: DictConfig) -> tuple[DictConfig, dict]:
     params, budget = apply_budget(
         OmegaConf.to_container(params, resolve=True), str(cfg.get("budget", DEFAULT_LEVEL)), cfg.planner.name
     )
+    # The planner's version (bumped by hand when its plans change) goes into the record, not the plan.
+    version = params.pop("version", None)
+    budget["planner_version"] = None if version is None else int(version)
     return OmegaConf.create(params), budget
 
 

@@ -25,7 +25,7 @@ from collections.abc import Mapping
 LEVELS = ("lowest", "low", "mid", "default", "high", "highest")
 DEFAULT_LEVEL = "default"
 # Keys of a planner config that are Hydra's or the study's, not the planner's parameters.
-CONFIG_KEYS = ("name", "_target_", "budget")
+CONFIG_KEYS = ("name", "_target_", "budget", "version")
 
 
 def level_rank(level: str) -> int:

@@ -100,16 +100,38 @@ def test_every_cell_scores_finite_numbers(smoke_sweep):
     assert by_planner["ours"][walls] > by_planner["lawnmower"][walls] + 10.0
 
 
-def test_proxy_is_built_once_per_scene(smoke_sweep):
+def test_the_committed_proxy_is_installed_once_and_planned_on(smoke_sweep):
     sweep_dir, cache_dir = smoke_sweep
     records = [json.loads(p.read_text()) for p in sorted(sweep_dir.rglob("metrics.json"))]
     assert sorted(r["proxy_cache_hit"] for r in records) == [False, True, True]
     # only cache_hit tells a hit; the build's own work-folder reuse flags would read false on both
     assert not any({"proxy_cached", "proxy_proxy_cached"} & r.keys() for r in records)
     assert len({r["proxy_entry"] for r in records}) == 1
-    assert len(list((cache_dir / "exploration").glob("*/COMPLETE.json"))) == 1
-    # every planner planned on the same proxy, and the record says so
-    assert len({r["proxy_fingerprint"] for r in records}) == 1
+    # proxies/smoke/tomb/seed0, not an exploration of this machine's (pipeline.proxy_bundle)
+    assert {r["proxy_bundle"] for r in records} == {"proxies/smoke/tomb/seed0"}
+    assert len(list((cache_dir / "exploration_bundle").glob("*/COMPLETE.json"))) == 1
+    assert not (cache_dir / "exploration").exists()
+    manifest = json.loads((ROOT / "proxies" / "smoke" / "tomb" / "seed0" / "manifest.json").read_text())
+    assert {r["proxy_fingerprint"] for r in records} == {manifest["mesh_fingerprint"]}
+
+
+def test_the_smoke_cells_are_golden(smoke_sweep):
+    """Protocol 1's code end to end (tests/golden_records.py): a change that moves these is a bug or
+    a protocol bump (results/protocol.md)."""
+    from tests.golden_records import CELL_FIELDS, CELLS_FILE, cell_differences
+
+    sweep_dir, _ = smoke_sweep
+    records = {r["planner"]: r for r in (json.loads(p.read_text()) for p in sweep_dir.rglob("metrics.json"))}
+    golden = json.loads(CELLS_FILE.read_text())
+    measured = {p: {k: records[p].get(k) for k in CELL_FIELDS} for p in golden}
+    for planner, values in golden.items():
+        differences = cell_differences(records[planner], values)
+        assert not differences, (
+            f"the smoke {planner} cell moved (a bug, or a protocol bump: results/protocol.md): "
+            f"{differences}; measured {json.dumps(measured)}"
+        )
+    assert records["ours"]["protocol"] is None  # the smoke preset is not the protocol's
+    assert records["ours"]["planner_version"] == 1
 
 
 def test_tables_from_the_sweep(smoke_sweep, tmp_path):

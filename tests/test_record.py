@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
@@ -143,3 +145,124 @@ def test_a_cell_on_another_proxy_than_its_group_is_named_and_filed_apart():
     assert other_proxy(proxies, cell | {"proxy_fingerprint": "ff4b3dae0123abcd"}) is None
     assert other_proxy(proxies, cell | {"seed": 1}) is None
     assert other_proxy(proxies, {"scene": "tomb", "seed": 0}) is None
+
+
+class FakeCells:
+    """Stands in for ``run.py`` under the queue: each run writes the ``metrics.json`` its script says
+    (``ok`` or ``failed``) into ``hydra.run.dir``; git commands run for real."""
+
+    def __init__(self, monkeypatch, tmp_path, outcomes):
+        import subprocess as real_subprocess
+        from contextlib import contextmanager
+
+        import experiments.record as record
+
+        self.outcomes = list(outcomes)
+        self.runs = []
+        real_run = real_subprocess.run
+
+        def run(command, *args, **kwargs):
+            if command[:2] != [sys.executable, "run.py"]:
+                return real_run(command, *args, **kwargs)
+            values = dict(item.split("=", 1) for item in command[2:])
+            run_dir = Path(values["hydra.run.dir"])
+            self.runs.append(values)
+            status = self.outcomes.pop(0)
+            metrics = {
+                "scene": values["scene"],
+                "planner": values["planner"],
+                "seed": int(values["seed"]),
+                "budget": values["budget"],
+                "target_gsd_m": float(values["survey.target_gsd_m"]),
+                "status": status,
+                "protocol": 1,
+                "planner_version": 1,
+                "n_images": 10,
+                "cell_wall_time_s": 60.0,
+            }
+            if status != "ok":
+                metrics.update(failed_stage="reconstruct", error="RuntimeError: no model")
+            (run_dir / "images").mkdir(parents=True)
+            (run_dir / "metrics.json").write_text(json.dumps(metrics))
+            return real_subprocess.CompletedProcess(command, 0 if status == "ok" else 1)
+
+        @contextmanager
+        def worktree(revision, prefix=""):
+            yield tmp_path / "tree"
+
+        monkeypatch.setattr(record.subprocess, "run", run)
+        monkeypatch.setattr(record, "revision_worktree", worktree)
+
+
+CELL = ("tomb", "ours", 0, "default", 0.03)
+
+
+def queue(tmp_path, limits, force=False):
+    from experiments.record import run_queue
+
+    return run_queue(
+        [CELL],
+        "q",
+        tmp_path / "runs",
+        commit=False,
+        limits=limits,
+        force=force,
+        records_root=tmp_path / "cells",
+    )
+
+
+def test_a_failed_cell_is_recorded_and_run_once_more(monkeypatch, tmp_path, capsys):
+    from experiments.record import QueueLimits
+
+    cells = FakeCells(monkeypatch, tmp_path, ["failed", "failed"])
+    assert queue(tmp_path, QueueLimits(min_free_gb=0.0)) == 1
+    assert len(cells.runs) == 2
+    record = json.loads((record_dir("q", *CELL, root=tmp_path / "cells") / "metrics.json").read_text())
+    assert record["status"] == "failed" and record["error"] == "RuntimeError: no model"
+    assert "failed in stage reconstruct: RuntimeError: no model" in capsys.readouterr().out
+    # recorded at this protocol and planner version, failed twice: the next run leaves it
+    assert queue(tmp_path, QueueLimits(min_free_gb=0.0)) == 0 and len(cells.runs) == 2
+
+
+def test_a_cell_that_fails_once_is_recorded_from_its_second_run_and_pruned(monkeypatch, tmp_path):
+    from experiments.record import QueueLimits
+
+    cells = FakeCells(monkeypatch, tmp_path, ["failed", "ok"])
+    assert queue(tmp_path, QueueLimits(min_free_gb=0.0)) == 0
+    assert len(cells.runs) == 2
+    record = json.loads((record_dir("q", *CELL, root=tmp_path / "cells") / "metrics.json").read_text())
+    assert record["status"] == "ok"
+    assert not Path(cells.runs[-1]["hydra.run.dir"]).exists()  # the run directory, pruned
+
+
+def test_no_cell_starts_past_the_deadline_or_below_the_disk_floor(monkeypatch, tmp_path, capsys):
+    import time
+
+    from experiments.record import QueueLimits
+
+    cells = FakeCells(monkeypatch, tmp_path, ["ok"])
+    soon = QueueLimits(deadline=time.time() + 30 * 60, estimates_h={CELL: 0.75}, min_free_gb=0.0)
+    assert queue(tmp_path, soon) == 0 and cells.runs == []
+    assert "estimated 45 min, 30 min left before the deadline: queue stopped" in capsys.readouterr().out
+    assert queue(tmp_path, QueueLimits(min_free_gb=1e9)) == 1 and cells.runs == []
+    assert (
+        "below the queue's 1e+09 GB: queue stopped (free disk, or lower --min-free-gb)"
+        in capsys.readouterr().out
+    )
+    later = QueueLimits(deadline=time.time() + 60 * 60, estimates_h={CELL: 0.75}, min_free_gb=0.0)
+    assert queue(tmp_path, later) == 0 and len(cells.runs) == 1
+
+
+def test_a_record_of_another_protocol_or_planner_version_is_run_again(monkeypatch, tmp_path):
+    from experiments.record import QueueLimits, current_record
+
+    cells = FakeCells(monkeypatch, tmp_path, ["ok", "ok", "ok"])
+    limits = QueueLimits(min_free_gb=0.0)
+    path = record_dir("q", *CELL, root=tmp_path / "cells") / "metrics.json"
+    assert queue(tmp_path, limits) == 0 and len(cells.runs) == 1
+    assert queue(tmp_path, limits) == 0 and len(cells.runs) == 1  # current: left alone
+    for stale in ({"protocol": None}, {"planner_version": 0}):
+        path.write_text(json.dumps({**json.loads(path.read_text()), **stale}))
+        assert current_record(path, 1) is None
+        assert queue(tmp_path, limits) == 0
+    assert len(cells.runs) == 3

@@ -22,25 +22,37 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_the_study_has_each_cell_once_in_phase_order():
     cells = study_cells()
     specs = [c.spec() for c in cells]
-    assert len(specs) == len(set(specs)) == 212
+    assert len(specs) == len(set(specs)) == 162
     assert [c.phase for c in cells] == sorted(c.phase for c in cells)
-    # seed 0 of the tomb's and church's own-knob fronts first: 20 levels a scene
-    assert sum(c.phase == 1 for c in cells) == 2 * sum(len(v) for v in OWN_LEVELS.values()) == 40
-    # every planner on the GSD axis at its default knob; 3 cm is the own-knob front's default cell
-    gsd = [c for c in cells if c.phase == 2]
-    assert {(c.budget, c.gsd_m) for c in gsd} == {("default", 0.045), ("default", 0.02)}
-    assert len(gsd) == 2 * 5 * 2
-    assert {c.seed for c in cells if c.phase == 3} == {1, 2}
-    assert [c.spec() for c in cells if c.phase == 6] == ["tomb/yan/0/highest/0.03"]
-    noise = [c for c in cells if c.phase == 7]  # ours and Smith on the church, three repeats each
+    # 1: seed 0 of the tomb's and church's own-knob fronts, 20 levels a scene, the oracle beside
+    phase1 = [c for c in cells if c.phase == 1]
+    assert len(phase1) == 2 * sum(len(v) for v in OWN_LEVELS.values()) == 40
+    assert all(c.overrides == () and c.gsd_m == 0.03 and c.seed == 0 for c in phase1)
+    # 2: the cathedral, every planner at its default
+    assert [c.spec() for c in cells if c.phase == 2] == [
+        f"cathedral/{p}/0/default/0.03" for p in ("ours", "smith", "lawnmower", "ours_plus", "yan")
+    ]
+    # 3: the noise floor: ours and Smith on the church, three repeats each, on the committed proxy
+    noise = [c for c in cells if c.phase == 3]
     assert [c.spec() for c in noise[:2]] == [
         "church/ours/0/default/0.03@rep0",
         "church/smith/0/default/0.03@rep0",
     ]
-    assert {c.preset("settled") for c in noise} == {f"settled_noise/rep{k}" for k in range(3)}
-    assert cells[0].preset("settled") == "settled"
+    assert all(c.overrides == ("reconstruct.deterministic=false",) for c in noise)
+    assert {c.preset("protocol1") for c in noise} == {f"protocol1_noise/rep{k}" for k in range(3)}
+    # 4: seeds 1 and 2 of phase 1, the oracle off
+    seeds = [c for c in cells if c.phase == 4]
+    assert len(seeds) == 80 and {c.seed for c in seeds} == {1, 2}
+    assert all(c.overrides == ("reconstruct.oracle_beside=false",) for c in seeds)
+    # 5: the shared meshes; 6: the GSD axis; 7: Yan at the seed paper's scale
     plant = [c for c in cells if c.scene == "powerplant"]
     assert len(plant) == 5 and all(c.overrides == ("exploration=lawnmower_orbit",) for c in plant)
+    assert {c.phase for c in cells if c.scene in ("school", "powerplant")} == {5}
+    gsd = [c for c in cells if c.phase == 6]
+    assert {(c.budget, c.gsd_m) for c in gsd} == {("default", 0.045), ("default", 0.02)}
+    assert len(gsd) == 2 * 5 * 2
+    assert [c.spec() for c in cells if c.phase == 7] == ["tomb/yan/0/highest/0.03"]
+    assert cells[0].preset("protocol1") == "protocol1"
 
 
 def test_every_study_level_is_one_its_planner_defines():
@@ -86,35 +98,42 @@ def test_cell_hours_come_from_the_most_similar_earlier_cell():
     }
 
 
-def test_a_noise_repeat_runs_from_nothing_in_its_own_records(monkeypatch, tmp_path):
+def test_a_noise_repeat_has_its_own_records_and_cache(monkeypatch, tmp_path):
     import experiments.record
-    from experiments.study_plan import run_cells
+    import experiments.study_plan as study_plan
 
     calls = []
     monkeypatch.setattr(experiments.record, "run_queue", lambda *a, **k: calls.append((a, k)) or 0)
-    cells = [StudyCell(1, "tomb", "ours", 0), StudyCell(7, "church", "ours", 0, repeat=1)]
-    preset = "no_such_preset"  # no records: no proxy to hold a group to
-    assert run_cells(cells, preset, tmp_path / "settled", ["a=1"], "abc1234") == 0
-    (first, first_kwargs), (second, kwargs) = calls
-    # The study's cells run deterministic; the noise floor's repeats in the default mode.
-    assert first[1:4] == (preset, tmp_path / "settled", ["a=1", "reconstruct.deterministic=true"])
-    assert first_kwargs == {"revision": "abc1234", "proxies": {}}
-    assert second[1] == f"{preset}_noise/rep1" and second[2] == tmp_path / "settled_noise" / "rep1"
-    cache = (tmp_path / "settled_noise" / "rep1" / "cache").resolve()
-    assert second[3] == ["a=1", "reconstruct.deterministic=false", f"cache_dir={cache}"]
-    assert kwargs == {"revision": "abc1234", "proxies": None}
-
-
-def test_records_of_another_revision_are_named_before_a_run():
-    from experiments.study_plan import foreign_records
-
-    commits = {"tomb/ours/0": "efed9486b020", "tomb/smith/0": "1234abcd5678", "tomb/yan/0": ""}
-    # A full revision sha against abbreviated and full record commits; a record without a commit is foreign.
-    assert foreign_records(commits, "efed9486b020255669cd73cd0eff17fab613948d") == [
-        "tomb/smith/0",
-        "tomb/yan/0",
+    monkeypatch.setattr(study_plan, "ensure_bundles", lambda cells, deadline, commit: [])
+    cells = [
+        StudyCell(1, "tomb", "ours", 0),
+        StudyCell(1, "church", "ours", 0),
+        StudyCell(3, "church", "ours", 0, overrides=("reconstruct.deterministic=false",), repeat=1),
     ]
-    assert foreign_records({"tomb/ours/0": "efed9486b020255669cd73cd0eff17fab613948d"}, "efed948") == []
+    preset = "no_such_preset"  # no records: no proxy to hold a group to
+    assert study_plan.run_cells(cells, preset, tmp_path / "protocol1", ["a=1"]) == 0
+    # one queue run per stretch of one folder, scene and seed (each proxy committed before it)
+    (first, first_kwargs), (second, _), (third, _) = calls
+    assert first[0] == [("tomb", "ours", 0, "default", 0.03, ())] and second[0][0][0] == "church"
+    assert first[1:4] == (preset, tmp_path / "protocol1", ["a=1"])
+    assert first_kwargs["proxies"] == {}
+    assert third[0] == [("church", "ours", 0, "default", 0.03, ("reconstruct.deterministic=false",))]
+    assert third[1] == f"{preset}_noise/rep1" and third[2] == tmp_path / "protocol1_noise" / "rep1"
+    cache = (tmp_path / "protocol1_noise" / "rep1" / "cache").resolve()
+    assert third[3] == ["a=1", f"cache_dir={cache}"]
+
+
+def test_until_is_the_next_such_time():
+    import datetime as dt
+
+    from experiments.study_plan import parse_until
+
+    now = dt.datetime(2026, 12, 7, 13, 0)
+    assert parse_until("15:40", now) == dt.datetime(2026, 12, 7, 15, 40).timestamp()
+    assert parse_until("12:30", now) == dt.datetime(2026, 12, 8, 12, 30).timestamp()
+    assert parse_until("2026-12-09T08:00", now) == dt.datetime(2026, 12, 9, 8, 0).timestamp()
+    with pytest.raises(ValueError, match=r"give HH:MM \(e.g. 15:40\)"):
+        parse_until("soon", now)
 
 
 def test_cells_that_planned_on_different_proxies_are_counted_per_scene_and_seed():
@@ -151,30 +170,6 @@ def test_a_group_is_held_to_the_proxy_most_of_its_records_planned_on():
         ("tomb", 1): {"none": 2, "cccc": 1},
     }
     assert group_proxies(counts) == {("tomb", 0): "aaaa", ("tomb", 1): "cccc"}
-
-
-def test_records_of_the_default_mode_are_named_before_a_run(monkeypatch):
-    import experiments.study_plan as study_plan
-
-    modes = {
-        "tomb/ours/0/default/0.03": "True",
-        "tomb/smith/0/default/0.03": "",
-        "tomb/yan/0/default/0.03": "",
-    }
-    asked = []
-
-    def fields(preset, cells, key):
-        asked.append((key, [c.spec() for c in cells]))
-        return modes
-
-    monkeypatch.setattr(study_plan, "recorded_fields", fields)
-    cells = [StudyCell(1, "tomb", "ours", 0), StudyCell(7, "church", "ours", 0, repeat=0)]
-    assert study_plan.default_mode_records("settled", cells) == [
-        "tomb/smith/0/default/0.03",
-        "tomb/yan/0/default/0.03",
-    ]
-    # The noise floor's repeats run in the default mode on purpose: not asked about.
-    assert asked == [("deterministic", ["tomb/ours/0/default/0.03"])]
 
 
 def test_a_measurement_preset_can_queue_some_planners_only(tmp_path, capsys):
