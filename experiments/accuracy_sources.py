@@ -2,7 +2,7 @@
 own errors, and what is left to the dense stage.
 
     uavplan-study accuracy-sources study/settled/tomb/ours/gsd0.03/lowest/seed0 \\
-        study/settled/tomb/ours/gsd0.03/high/seed0 --out results/accuracy_sources/tomb
+        study/settled/tomb/ours/gsd0.03/high/seed0 --out archive/pre_p1/accuracy_sources/tomb
 
 For every finished run (``recon/sparse``, ``images/cameras.json``, ``recon/dense.ply``):
 

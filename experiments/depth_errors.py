@@ -1,7 +1,7 @@
 """How accurate are a flight's depth maps, pair by pair, against the ground truth?
 
     uavplan-study depth-errors study/default_v4/church/ours/default/seed0 \\
-        study/default_v4/church/smith/default/seed0 --views 60 --out results/depth_errors/church
+        study/default_v4/church/smith/default/seed0 --views 60 --out archive/pre_p1/depth_errors/church
 
 For every run: its aligned sparse model and images are put in a fresh dense workspace, the CPU
 back-end's stereo partners are chosen as a cell chooses them (``reconstruct.dense.select_partners``

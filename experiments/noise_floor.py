@@ -1,7 +1,7 @@
 """The noise floor: one cell run K times from nothing, and how far its numbers move on their own.
 
     uavplan-study noise-floor --repeats 5 --out study/noise -- scene=tomb planner=ours,lawnmower
-    uavplan-study noise-floor --summarise study/noise --out results/noise_floor
+    uavplan-study noise-floor --summarise study/noise --out archive/pre_p1/noise_floor
 
 Each repeat is a Hydra sweep cell of ``run.py`` with its own empty stage cache, so the exploratory
 flight, its reconstruction and the proxy are rebuilt every time, in the default (not

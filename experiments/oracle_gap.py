@@ -1,7 +1,7 @@
 """The real reconstruction against its oracle ceiling, cell by cell: does the matcher rank the plans
 as a perfect one would?
 
-    uavplan-study oracle-gap multirun/<date> results/... --out results/oracle_gap
+    uavplan-study oracle-gap multirun/<date> results/... --out archive/pre_p1/oracle_gap
 
 Every cell scored with ``reconstruct.oracle_beside`` carries ``oracle_*`` fields in its
 ``metrics.json``: the ground truth ray-cast at the registered SfM cameras with the stereo noise

@@ -1,7 +1,7 @@
 """ours_plus' quality-vs-flight-time front: its cells at each weight of the flight-time term joined in
 weight order, with ours and the baselines (default budget) as points, one column per scene.
 
-    uavplan-study ours-plus-front results/cells/default_v4 --out results/ours_plus
+    uavplan-study ours-plus-front results/cells/default_v4 --out archive/pre_p1/ours_plus
 
 A cell counts as ours_plus when its planner's name starts with ``ours_plus`` (``ours_plus``,
 ``ours_plus_time0``, ``..._time12``: conf/planner/); its weight is the ``time_weight_per_pct`` its

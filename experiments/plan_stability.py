@@ -4,9 +4,9 @@
 
 Two default-mode reconstructions of the same exploratory flight give proxies a few millimetres apart
 (the smoke tomb: median 3.1 mm, 90th percentile 11 mm between the two surfaces; see
-``results/reproducibility.md``). Each planner plans once on the proxy as it is and ``--repeats`` times on
-copies whose vertices moved along their normals by Gaussian noise of ``--sigma-mm`` (5 mm: median
-offset 3.4 mm, 90th percentile 8 mm), with the same planner seed. Per plan it reports the image count,
+``archive/pre_p1/reproducibility.md``). Each planner plans once on the proxy as it is and
+``--repeats`` times on copies whose vertices moved along their normals by Gaussian noise of
+``--sigma-mm`` (5 mm: median offset 3.4 mm, 90th percentile 8 mm), with the same planner seed. Per plan it reports the image count,
 the flight length, how far the views moved (each view to the nearest view of the unperturbed plan)
 and the predicted coverage per surface class: the share of the unperturbed proxy's samples that
 ``min_views`` planned views observe within ``max_distance_factor`` d_t and ``max_incidence_deg`` of

@@ -1,11 +1,12 @@
 """The study's published results, regenerated from the committed cell records alone.
 
-    uavplan-study results                       # every study under results/cells/
-    uavplan-study results study --out results   # one: results/cells/study -> results/study/
+    uavplan-study results --readme README.md  # the current study: results/cells/protocol<N> -> results/study/
+    uavplan-study results NAME --out DIR        # another folder of records: results/cells/NAME -> DIR/NAME/
 
-A study is a folder of cell records, ``results/cells/<study>/<scene>/<planner>/<budget>/seed<k>/``
+A study is a folder of cell records, ``results/cells/<study>/<scene>/<planner>/gsd<g>/<budget>/seed<k>/``
 (``metrics.json`` and ``plan.json``, written and committed by ``experiments.record`` as each cell
-finishes). For each study this writes into ``<out>/<study>/``:
+finishes). Only the records of the current protocol and of each planner's current version are read
+(``current_records``; results/protocol.md). For each study this writes into ``<out>/<study>/``:
 
 - ``tables/``: the paper's Table I and II, the surfaces table and the summaries of
   ``experiments.tables``, over the cells at the default budget (mean and spread over seeds);
@@ -38,6 +39,7 @@ from experiments.fronts import DEFAULT_AT_IMAGES, DEFAULT_TARGETS_PCT, on_axis, 
 from experiments.runs import RunDirectoryError, load_runs, method_sort_key, runs_frame, scene_name
 from experiments.study_plan import STUDY_PRESET
 from experiments.tables import code_provenance, tables_from_runs, write_tables
+from pipeline.protocol import PROTOCOL
 from planner.budget import DEFAULT_LEVEL, level_rank
 from scene.io import write_text_atomic
 
@@ -45,7 +47,7 @@ log = logging.getLogger(__name__)
 
 ROOT = Path(__file__).resolve().parents[1]
 CELLS = ROOT / "results" / "cells"
-HEADLINE_BEGIN = "<!-- headline table: python -m experiments.results study --readme README.md -->"
+HEADLINE_BEGIN = "<!-- headline table: uavplan-study results --readme README.md -->"
 HEADLINE_END = "<!-- end of the headline table -->"
 
 
@@ -56,6 +58,31 @@ def study_runs(cells_dir: Path) -> pd.DataFrame:
     base = cells_dir.resolve()
     runs["run_dir"] = [Path(d).relative_to(base).as_posix() for d in runs["run_dir"]]
     return runs
+
+
+def current_records(runs: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """(the records of the current protocol and of their planner's current version, the others).
+
+    A planner whose config the repository does not have (one from outside) counts at version None."""
+    from omegaconf.errors import OmegaConfBaseException
+
+    from pipeline.protocol import planner_version
+
+    def version(planner: str) -> int | None:
+        try:
+            return planner_version(planner)
+        except (OmegaConfBaseException, ValueError):
+            return None
+
+    versions = {planner: version(planner) for planner in runs["planner"].unique()}
+    protocol = runs.get("protocol", pd.Series(index=runs.index, dtype=float))
+    recorded = runs.get("planner_version", pd.Series(index=runs.index, dtype=float))
+    current = [
+        p == PROTOCOL and (v == versions[planner] if versions[planner] is not None else pd.isna(v))
+        for p, v, planner in zip(protocol, recorded, runs["planner"], strict=True)
+    ]
+    keep = pd.Series(current, index=runs.index, dtype=bool)
+    return runs[keep].reset_index(drop=True), runs[~keep].reset_index(drop=True)
 
 
 def _count(n: int, noun: str) -> str:
@@ -147,8 +174,8 @@ def study_cost(runs: pd.DataFrame) -> list[str]:
     ]
 
 
-def study_readme(study: str, runs: pd.DataFrame) -> str:
-    """The study folder's README: cells, code, machines, how to run and regenerate."""
+def study_readme(study: str, runs: pd.DataFrame, n_left_out: int = 0) -> str:
+    """The study folder's README: cells, protocol, code, machines, how to run and regenerate."""
     ok = runs[runs["status"] == "ok"]
     scenes = ", ".join(dict.fromkeys(scene_name(s) for s in runs["scene"]))
     per_planner = runs.groupby("planner", sort=False).agg(
@@ -167,6 +194,10 @@ def study_readme(study: str, runs: pd.DataFrame) -> str:
         "| planner | budgets | seeds | cells |",
         "| :-- | :-- | :-- | --: |",
         *(f"| {p} | {r.budgets} | {r.seeds} | {r.cells} |" for p, r in per_planner.iterrows()),
+        "",
+        f"**Protocol.** Protocol {PROTOCOL} (`results/protocol.md`): every record here is of it and of its "
+        f"planner's current version; {_count(n_left_out, 'record')} of other protocols, off the protocol "
+        "or of an older plan left out.",
         "",
         code_provenance(runs)[0].strip(),
         "",
@@ -203,15 +234,19 @@ def study_readme(study: str, runs: pd.DataFrame) -> str:
 
 def study_noise_floor(noise_dir: Path) -> dict[str, float] | None:
     """The noise floor of a study's repeats (``results/cells/<study>_noise/rep<k>/``, the study plan's
-    phase 7; ``experiments.noise_floor``), or None while no cell has two recorded repeats."""
+    phase 3; ``experiments.noise_floor``) at the current protocol, or None while no cell has two
+    recorded repeats."""
     from experiments.noise_floor import load_repeats, noise_floor, summarise_repeats
 
     if not Path(noise_dir).is_dir():
         return None
     try:
-        summary = summarise_repeats(load_repeats(noise_dir))
+        repeats, _ = current_records(load_repeats(noise_dir))
     except RunDirectoryError:
         return None
+    if repeats.empty:
+        return None
+    summary = summarise_repeats(repeats)
     return noise_floor(summary) or None
 
 
@@ -221,9 +256,11 @@ def write_study(
     out_root: Path = ROOT / "results",
     targets_pct: Sequence[float] = DEFAULT_TARGETS_PCT,
     at_images: Sequence[int] = DEFAULT_AT_IMAGES,
+    out_name: str | None = None,
 ) -> list[Path]:
-    """Regenerate ``out_root/<study>/`` from ``cells_root/<study>/``; return the files written. The
-    fronts ask for the images to reach each of ``targets_pct`` and compare at each of ``at_images``.
+    """Regenerate ``out_root/<out_name or study>/`` from the current records of
+    ``cells_root/<study>/`` (``current_records``); return the files written. The fronts ask for the
+    images to reach each of ``targets_pct`` and compare at each of ``at_images``.
 
     The folder is built beside its place and swapped in whole, so it never mixes files of two
     generations (a table a study no longer has is gone, not left stale).
@@ -231,11 +268,16 @@ def write_study(
     Raises:
         RunDirectoryError: the study folder is missing or holds no record.
     """
-    runs = study_runs(Path(cells_root) / study)
+    runs, left_out = current_records(study_runs(Path(cells_root) / study))
+    if runs.empty:
+        raise RunDirectoryError(
+            f"{Path(cells_root) / study}: no record of protocol {PROTOCOL} at its planner's current version "
+            f"({_count(len(left_out), 'record')} of others)"
+        )
     floor = study_noise_floor(Path(cells_root) / f"{study}_noise")
-    out = Path(out_root) / study
+    out = Path(out_root) / (out_name or study)
     out.parent.mkdir(parents=True, exist_ok=True)
-    build = Path(tempfile.mkdtemp(prefix=f".{study}.", dir=out.parent))
+    build = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     try:
         written = []
         own_knob = on_axis(runs, "budget").drop(columns="gsd_m")  # Tables I and II: the survey's GSD
@@ -247,9 +289,9 @@ def write_study(
         if (runs["status"] == "ok").any():
             written += write_fronts(runs, build, targets_pct, at_images, floor=floor)
         written.append(write_text_atomic(build / "cells.csv", runs.to_csv(index=False, lineterminator="\n")))
-        written.append(write_text_atomic(build / "README.md", study_readme(study, runs)))
+        written.append(write_text_atomic(build / "README.md", study_readme(study, runs, len(left_out))))
         os.chmod(build, 0o755)
-        old = out.with_name(f".{study}.old")
+        old = out.with_name(f".{out.name}.old")
         shutil.rmtree(old, ignore_errors=True)
         if out.exists():
             os.replace(out, old)
@@ -259,6 +301,12 @@ def write_study(
         shutil.rmtree(build, ignore_errors=True)
         raise
     return [out / p.relative_to(build) for p in written]
+
+
+def study_folder(study: str) -> str:
+    """Where a study's results go under ``results/``: the current protocol's study in ``study/``
+    (what the README links), any other in a folder of its name."""
+    return "study" if study == STUDY_PRESET else study
 
 
 def splice_headline(readme: str, table: str) -> str:
@@ -295,10 +343,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(message)s")
-    # a study's noise repeats (<study>_noise) are its floor, not a study of their own
-    studies = args.studies or sorted(
-        p.name for p in args.cells.iterdir() if p.is_dir() and not p.name.endswith("_noise")
-    )
+    studies = args.studies or [STUDY_PRESET]
     if not studies:
         print(f"error: no study folder under {args.cells}", file=sys.stderr)
         return 2
@@ -314,16 +359,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"error: --readme {args.readme}: {exc}", file=sys.stderr)
             return 2
     for study in studies:
-        # A superseded study's results live under <out>/archive/ and are regenerated there.
-        out = args.out / "archive" if (args.out / "archive" / study).is_dir() else args.out
+        name = study_folder(study)
         try:
-            written = write_study(study, args.cells, out, args.targets, args.at_images)
+            written = write_study(study, args.cells, args.out, args.targets, args.at_images, name)
         except RunDirectoryError as exc:
             print(f"error: study {study}: {exc}", file=sys.stderr)
             return 2
-        print(f"{study}: {len(written)} files in {out / study}")
+        print(f"{study}: {len(written)} files in {args.out / name}")
     if readme is not None:
-        headline = args.out / studies[0] / "headline.md"
+        headline = args.out / study_folder(studies[0]) / "headline.md"
         write_text_atomic(args.readme, splice_headline(readme, headline.read_text()))
         print(f"{args.readme}: headline table from {headline}")
     return 0

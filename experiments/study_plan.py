@@ -75,7 +75,7 @@ NOISE_MODE = ("reconstruct.deterministic=false",)
 NOISE_CELLS = (("church", "ours"), ("church", "smith"))
 NOISE_REPEATS = 3
 # Where the cell-hours of a cell not run before are guessed from: this study's records, then those
-# of the studies before protocol 1 (archive/results_before_protocol1/cells).
+# of the studies before protocol 1 (archive/pre_p1/cells).
 PAST_RECORDS = (ROOT / "results" / "cells", ROOT / "archive" / "results_before_protocol1" / "cells")
 BUNDLE_HOURS = 0.2  # building and committing one scene's proxy (about 6-10 minutes on 2 cores)
 UNKNOWN_CELL_H = 0.75  # a cell no earlier record resembles (a mesh scene, a new level)

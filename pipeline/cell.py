@@ -75,12 +75,21 @@ def plan_stage(
         ``flight_order: flight_time``), the forecast, ``n_viewpoints``,
         ``flight_length_m``, ``flight_time_s``, ``n_batteries``).
     """
+    from mission.envelope import keep_within_heights
     from mission.validate import validate_plan
 
     plan_fn = hydra.utils.get_method(target)
     start = time.perf_counter()
     plan = plan_fn(proxy, intrinsics, params, seed)
     record: dict = {"plan_time_s": time.perf_counter() - start}
+    # Within the drone's floor and ceiling by construction, whoever planned: views above or below
+    # are moved to the limit or dropped (mission/envelope.py). The study's plans are left as they
+    # are (none comes near 120 m): ``envelope`` is recorded only where a view moved.
+    unbounded = plan
+    if isinstance(plan, Plan):
+        plan, envelope = keep_within_heights(plan, proxy, drone)
+    else:
+        envelope = None
     validate_plan(plan, proxy, drone)  # whoever made it: nothing unflyable is rendered
     if flight_order == "flight_time":
         start = time.perf_counter()
@@ -90,6 +99,22 @@ def plan_stage(
     target_distance = float(target_gsd_m) * intrinsics.focal_px
     forecast = predicted_coverage(proxy, plan.viewpoints, intrinsics, target_distance, evaluation)
     plan.info["predicted_coverage"] = {"criteria": FORECAST_CRITERIA, **forecast}
+    if envelope is not None:
+        # What the heights cost: the forecast of the plan as the planner made it.
+        envelope["forecast_before"] = predicted_coverage(
+            proxy, unbounded.viewpoints, intrinsics, target_distance, evaluation
+        )
+        envelope["forecast_after"] = forecast
+        record["envelope"] = envelope
+        log.info(
+            "within the drone's heights (%.0f-%.0f m): %d views moved down, %d up, %d dropped (of %d)",
+            envelope["floor_m"],
+            envelope["ceiling_m"],
+            envelope["n_moved_down"],
+            envelope["n_moved_up"],
+            envelope["n_dropped"],
+            envelope["n_before"],
+        )
     budget = plan.info.get("budget")
     if isinstance(budget, dict) and budget.get("unconstrained_viewpoints"):
         # What the budget gave up: the forecast of the plan the objective asked for.

@@ -36,7 +36,7 @@ COVERED_GROUPS = ("camera", "scene", "exploration", "render", "reconstruct", "ev
 # the scene's seed is the cell's seed; a mesh scene's path differs per machine (its content is
 # ``scene_fingerprint``); the GSD is the study's second axis (``target_gsd_m`` in every record);
 # the deterministic mode, the dense workspace and the oracle beside change no scored number
-# (results/reproducibility.md; conf/reconstruct/default.yaml).
+# (archive/pre_p1/reproducibility.md; conf/reconstruct/default.yaml).
 NEUTRAL_KEYS = (
     "scene.seed",
     "scene.path",

@@ -6,7 +6,7 @@ acted on it. A per-minute price is not scale-free: R counts well-observed sample
 (2048) whatever the scene's size, so a view of a large scene adds less R than one of a small scene
 while taking as long to fly, and one price per minute prunes the large scene harder (the cathedral
 lost 22 % of its views and 5 points of completeness at the price that cost the tomb 5 %:
-results/ours_plus.md). Priced per share of the scene's own flight, 1 % of the flight buys the same
+archive/pre_p1/ours_plus.md). Priced per share of the scene's own flight, 1 % of the flight buys the same
 share of R on every scene. The flight is timed by the missions' model (``drone.model``:
 accelerate-cruise-decelerate legs, yaw and gimbal at each stop, a photo) along a visiting order.
 The order used while optimising is a greedy nearest-neighbour path from the take-off point, fixed

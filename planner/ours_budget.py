@@ -10,7 +10,7 @@ final R (Eq. 10 with the detail heuristics, every view seen within the coverage 
 views kept are the ones the objective values most for what they cost. A removal also pays for the
 stereo partners it takes from the views that stay (``PartnerTerm``, ``planner.stereo_partners``):
 the objective alone left a 100-image tomb plan with 30 views of two partners or fewer, and the dense stage
-made less of their walls (results/planner_ours.md). A budget the plan already
+made less of their walls (archive/pre_p1/planner_ours.md). A budget the plan already
 fits leaves it as it is; a budget below what the model-coverage views alone need is refused, naming
 the smallest that can be planned.
 """

@@ -7,7 +7,7 @@ baseline makes at least ``min_baseline_axis_angle_deg`` with both optical axes. 
 partners gets fewer depth maps, and fusion (three agreeing maps) keeps less of what it sees. The same
 test on the planner's samples (shared visible samples in place of shared sparse points) forecasts
 those partners before the flight; the budget prune (``planner.ours_budget``) uses it so that the
-views it keeps keep their partners. Measured on the tomb's 100-image plan (results/planner_ours.md):
+views it keeps keep their partners. Measured on the tomb's 100-image plan (archive/pre_p1/planner_ours.md):
 forecast against the dense stage's own choice, per view, agreed within one partner for 92 of 100 views.
 """
 

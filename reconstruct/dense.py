@@ -65,7 +65,7 @@ _MAX_WINDOW_DEPTH_JUMP = 0.05
 def select_backend(requested: str) -> str:
     """The depth back-end to run: ``auto`` is the CPU back-end (SGBM), measured the better one here.
 
-    The one CUDA measurement (PatchMatch on a 40-view 640 px tomb workspace, results/limitations.md)
+    The one CUDA measurement (PatchMatch on a 40-view 640 px tomb workspace, archive/pre_p1/limitations.md)
     was both slower end to end and less accurate than SGBM on 2 CPU cores, so ``auto`` does not pick
     CUDA merely because pycolmap has it; ``cuda`` asks for it. ``oracle`` ray-casts the ground truth
     (``reconstruct.oracle``): the matcher's ceiling, for simulated runs only.
@@ -567,7 +567,7 @@ FUSION_BYTES_PER_PX = 20
 
 
 # ``fusion.max_memory_gb: auto``: fusion's views may hold this share of the memory the machine has
-# free when fusion starts. Chunked fusion peaks at about 1.6x its budget (results/throughput.md),
+# free when fusion starts. Chunked fusion peaks at about 1.6x its budget (archive/pre_p1/throughput.md),
 # so 0.5 keeps the peak near 0.8 of what is free.
 AUTO_MEMORY_SHARE = 0.5
 

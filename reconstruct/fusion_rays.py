@@ -7,7 +7,7 @@ median of their back-projected points. Those points lie on the surface but up to
 across it, and the median of each coordinate of points spread over a slanted or curved surface
 lies off it: the more views join a cluster, the wider it spreads and the farther its median leaves
 the surface, so a flight's fused cloud gets less accurate as views are added (``tests/
-test_dense_quality.py``, results/dense_stage.md).
+test_dense_quality.py``, archive/pre_p1/dense_stage.md).
 
 Here (``fusion.method: rays``) views are taken in turn. Every unused depth pixel of the reference
 is projected into its ``ray_neighbours`` most overlapping views; a neighbour confirms it when its
@@ -214,7 +214,7 @@ def well_conditioned(cloud: Mapping[str, np.ndarray], cell_m: float, ratio: floa
     Where a flight's views overlap many times over, a patch of surface is measured by well
     conditioned views (close, wide baselines) and by poorly conditioned ones (far, oblique, narrow
     baselines) alike; fusion confirms both, and the poor ones, several times noisier, set the error
-    percentiles: a denser flight of the same views got *less* accurate (results/dense_stage.md).
+    percentiles: a denser flight of the same views got *less* accurate (archive/pre_p1/dense_stage.md).
     Dropping a point that a much better measured one stands beside keeps the patch (completeness)
     and its best measurements: a view added to a flight then adds a point only where it is among
     the best measured there. Where only poor views saw a patch, their points are its best and stay.

@@ -3,7 +3,7 @@
 A survey drone logs, with every photo, its GNSS position and its gimbal's attitude. Two views of a
 facade whose bays repeat can match one bay against the next: the pair passes RANSAC (the geometry
 is self-consistent), and the mapper may then register the view in the wrong bay, metres from its
-GNSS fix (the cathedral's nave: results/archive/planner_ours.md). Such a pair's estimated relative pose
+GNSS fix (the cathedral's nave: archive/pre_p1/archive/planner_ours.md). Such a pair's estimated relative pose
 disagrees with the one the priors give: its rotation with the logged attitudes, its translation
 direction with the GNSS baseline. Dropping those pairs before mapping is the pose-prior check of
 aerial SfM pipelines.

@@ -1297,7 +1297,7 @@ def test_written_normal_map_is_planar_like_colmap(tmp_path):
 def test_dense_backend_auto_is_the_cpu_back_end_measured_best():
     from reconstruct.dense import select_backend
 
-    assert select_backend("auto") == "cpu"  # even where pycolmap has CUDA (results/limitations.md)
+    assert select_backend("auto") == "cpu"  # even where pycolmap has CUDA (archive/pre_p1/limitations.md)
     assert select_backend("oracle") == "oracle"
     assert select_backend("cpu") == "cpu"
     if not pycolmap.has_cuda:

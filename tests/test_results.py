@@ -17,6 +17,7 @@ from experiments.results import (
 )
 
 FIXTURE = Path(__file__).resolve().parent / "data" / "results_study"
+CURRENT = {"protocol": 1, "planner_version": 1}
 TEXT_SUFFIXES = {".md", ".csv", ".tex"}
 
 
@@ -37,6 +38,19 @@ def test_a_fixture_study_reproduces_its_committed_tables_byte_for_byte(regenerat
             assert (tmp_path / "fixture" / rel).read_text() == (expected_dir / rel).read_text(), rel
         else:  # figures: written, and not empty
             assert (tmp_path / "fixture" / rel).stat().st_size > 10_000, rel
+
+
+def test_only_the_current_protocol_and_planner_versions_are_read(regenerated):
+    """The fixture holds two stale records: a Smith cell of protocol 0 (99 % at 999 images) and an
+    ours cell of planner version 0; neither is in a table, a front or the cell list."""
+    import pandas as pd
+
+    tmp_path, _ = regenerated
+    cells = pd.read_csv(tmp_path / "fixture" / "cells.csv")
+    assert len(cells) == 18 and set(cells["protocol"]) == {1} and set(cells["planner_version"]) == {1}
+    assert "smith" not in set(cells["planner"]) and 1.0 not in set(cells["comp_050"])
+    assert "| Smith" not in (tmp_path / "fixture" / "headline.md").read_text()
+    assert "2 records of other protocols" in (tmp_path / "fixture" / "README.md").read_text()
 
 
 def test_the_fixture_front_numbers_are_the_hand_computed_ones(regenerated):
@@ -147,9 +161,12 @@ def test_a_studys_noise_floor_comes_from_its_repeats(tmp_path):
     noise = tmp_path / "settled_noise"
     assert study_noise_floor(noise) is None  # no repeats yet: no floor, exact ties only
     for repeat, (comp, acc) in enumerate([(80.0, 0.020), (77.5, 0.023), (79.0, 0.021)]):
-        write_run(noise / f"rep{repeat}", "church", "ours", 0, comp_050=comp, acc90_m=acc)
-    write_run(noise / "rep0", "church", "smith", 0, comp_050=70.0, acc90_m=0.03)
-    write_run(noise / "rep1", "church", "smith", 0, comp_050=73.0, acc90_m=0.03)
+        write_run(noise / f"rep{repeat}", "church", "ours", 0, comp_050=comp, acc90_m=acc, **CURRENT)
+    write_run(noise / "rep0", "church", "smith", 0, comp_050=70.0, acc90_m=0.03, **CURRENT)
+    write_run(noise / "rep1", "church", "smith", 0, comp_050=73.0, acc90_m=0.03, **CURRENT)
+    # a repeat of another protocol is not part of the floor
+    old = {"protocol": 0, "planner_version": 1}
+    write_run(noise / "rep2", "church", "smith", 0, comp_050=50.0, acc90_m=0.03, **old)
     floor = study_noise_floor(noise)
     assert floor["comp_050"] == pytest.approx(3.0)  # Smith's range; ours' is 2.5
     assert floor["acc90_m"] == pytest.approx(0.003)
