@@ -49,17 +49,25 @@ def output_paths(out: Path, n_files: int) -> list[Path]:
 
 
 def export_mission(
-    viewpoints: np.ndarray, origin: SurveyOrigin, drone: DroneSettings, fmt: str, out: Path
+    viewpoints: np.ndarray,
+    origin: SurveyOrigin,
+    drone: DroneSettings,
+    fmt: str,
+    out: Path,
+    max_waypoints: int | None = None,
 ) -> tuple[Mission, list[Path]]:
     """Check, split and write ``viewpoints`` (V, 5) as ``fmt`` mission file(s) at ``out``.
 
     Every file is rendered before the first is written, and each is written atomically: a plan that
-    cannot be flown leaves no file behind.
+    cannot be flown leaves no file behind. ``max_waypoints``: the controller app's cap per file
+    (``mission.controllers``), beside the drone's and the format's own.
     """
     if fmt not in FORMATS:
         raise MissionError(f"unknown mission format {fmt!r}; choose one of {sorted(FORMATS)}")
     module = FORMATS[fmt]
-    cap = min(c for c in (drone.max_waypoints_per_file, module.MAX_WAYPOINTS) if c is not None)
+    cap = min(
+        c for c in (drone.max_waypoints_per_file, module.MAX_WAYPOINTS, max_waypoints) if c is not None
+    )
     mission = build_mission(viewpoints, origin, drone, max_waypoints=cap)
     contents = module.render(mission)
     paths = output_paths(Path(out), len(contents))
