@@ -6,13 +6,14 @@ Two default-mode reconstructions of the same exploratory flight give proxies a f
 (the smoke tomb: median 3.1 mm, 90th percentile 11 mm between the two surfaces; see
 ``archive/pre_p1/reproducibility.md``). Each planner plans once on the proxy as it is and
 ``--repeats`` times on copies whose vertices moved along their normals by Gaussian noise of
-``--sigma-mm`` (5 mm: median offset 3.4 mm, 90th percentile 8 mm), with the same planner seed. Per plan it reports the image count,
-the flight length, how far the views moved (each view to the nearest view of the unperturbed plan)
-and the predicted coverage per surface class: the share of the unperturbed proxy's samples that
-``min_views`` planned views observe within ``max_distance_factor`` d_t and ``max_incidence_deg`` of
-the normal (``experiments.observations``' criteria, measured on the same unperturbed proxy for every
-plan, so only the plan changes). A planner whose plan swings by more than the reconstruction's own
-noise makes its table cells noisier than the reconstruction alone would.
+``--sigma-mm`` (5 mm: median offset 3.4 mm, 90th percentile 8 mm), with the same planner seed. Per
+plan it reports the image count, the flight length, how far the views moved (each view to the
+nearest view of the unperturbed plan) and the predicted coverage per surface class: the share of the
+unperturbed proxy's samples that ``min_views`` planned views observe within ``max_distance_factor``
+d_t and ``max_incidence_deg`` of the normal (``experiments.observations``' criteria, measured on the
+same unperturbed proxy for every plan, so only the plan changes). A planner whose plan swings by
+more than the reconstruction's own noise makes its table cells noisier than the reconstruction alone
+would.
 
 Writes ``plan_stability.md`` (per planner: the unperturbed plan, the spread over the perturbed ones)
 and ``plan_stability.csv`` (one row per plan) into ``--out``.

@@ -23,6 +23,7 @@ already recorded is skipped unless ``--force``. A failed cell's ``metrics.json``
 from __future__ import annotations
 
 import argparse
+import collections
 import json
 import math
 import os
@@ -36,6 +37,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+from experiments.launch import Job, launch
 from experiments.runs import RunDirectoryError, read_metrics
 from pipeline.protocol import PROTOCOL
 from planner.budget import DEFAULT_LEVEL, level_rank
@@ -259,6 +261,8 @@ def run_queue(
     limits: QueueLimits = QueueLimits(deadline=None, prune=False, min_free_gb=0.0, attempts=1),
     env_extra: dict[str, str] | None = None,
     records_root: Path = RECORDS,
+    launcher: str = "local",
+    n_jobs: int = 1,
 ) -> int:
     """Run the cells one after the other from a worktree of ``revision``; record (and commit) each one.
 
@@ -270,6 +274,8 @@ def run_queue(
     cell that planned on another one is recorded under ``<preset>_proxy_<fingerprint>`` instead, and
     the queue stops: its front would mix two proxies. A group's first cell sets its proxy.
     ``limits``: the deadline, the disk floor, pruning and retries (``QueueLimits``).
+    ``launcher``, ``n_jobs``: where the cells run and how many at once (``experiments.launch``);
+    the workers run the cells, this driver alone records and commits them.
 
     Returns the number of cells that failed (a cell on another proxy counts).
 
@@ -327,7 +333,6 @@ def run_queue(
             flush=True,
         )
     versions = {planner: planner_version(planner) for planner in {cell[1] for cell in cells}}
-    failed = 0
     proxies = dict(proxies or {})
     with revision_worktree(head, prefix="uavplan_queue_") as tree:
         env = dict(
@@ -339,50 +344,78 @@ def run_queue(
         )
         # the shared meshes' folder (conf/scene/school.yaml) as seen from the checkout, not the worktree
         env.setdefault("UAVPLAN_MESHES", str((ROOT.parent / "shared" / "data" / "meshes").resolve()))
+        todo = []
         for scene, planner, seed, budget, gsd_m, cell_overrides in cells:
-            name = f"{scene}/{planner}/{seed}/{budget}/{gsd_m:g}"
             recorded = record_dir(preset, scene, planner, seed, budget, gsd_m, records_root) / "metrics.json"
             if not force and current_record(recorded, versions[planner]) is not None:
-                print(f"{name}: recorded already (--force runs it again)", flush=True)
+                print(
+                    f"{scene}/{planner}/{seed}/{budget}/{gsd_m:g}: recorded already (--force runs it again)"
+                )
                 continue
-            estimate_h = (limits.estimates_h or {}).get(
-                (scene, planner, seed, budget, gsd_m), limits.default_estimate_h
-            )
-            if limits.deadline is not None and time.time() + estimate_h * 3600.0 > limits.deadline:
-                left_min = max(limits.deadline - time.time(), 0.0) / 60.0
-                print(
-                    f"{name}: estimated {estimate_h * 60:.0f} min, {left_min:.0f} min left before the "
-                    "deadline: queue stopped (the same command resumes it)",
-                    flush=True,
-                )
-                return failed
-            run_dir = (Path(study) / cell_path(scene, planner, seed, budget, gsd_m)).resolve()
-            if limits.min_free_gb and free_gb(run_dir) < limits.min_free_gb:
-                print(
-                    f"{name}: {free_gb(run_dir):.1f} GB free under {run_dir.parent}, below the queue's "
-                    f"{limits.min_free_gb:g} GB: queue stopped (free disk, or lower --min-free-gb)",
-                    flush=True,
-                )
-                return failed + 1
-            command = [
-                sys.executable,
-                "run.py",
-                f"scene={scene}",
-                f"planner={planner}",
-                f"seed={seed}",
-                f"budget={budget}",
-                f"survey.target_gsd_m={gsd_m!r}",
-                f"hydra.run.dir={run_dir}",
-                *cell_overrides,
-                *overrides,
-            ]
-            for attempt in range(1, max(limits.attempts, 1) + 1):
+            todo.append((scene, planner, seed, budget, gsd_m, cell_overrides))
+        queue = collections.deque((cell, 1) for cell in todo)
+        state = {"stopped": False, "failed": 0}
+
+        def name_of(cell: tuple) -> str:
+            scene, planner, seed, budget, gsd_m, _ = cell
+            return f"{scene}/{planner}/{seed}/{budget}/{gsd_m:g}"
+
+        def run_dir_of(cell: tuple) -> Path:
+            return (Path(study) / cell_path(*cell[:5])).resolve()
+
+        def jobs() -> Iterator[Job]:
+            """The next cell to start, pulled by the launcher when a worker is free; none past
+            the deadline or below the disk floor."""
+            while queue and not state["stopped"]:
+                cell, attempt = queue.popleft()
+                name, run_dir = name_of(cell), run_dir_of(cell)
+                estimate_h = (limits.estimates_h or {}).get(cell[:5], limits.default_estimate_h)
+                if limits.deadline is not None and time.time() + estimate_h * 3600.0 > limits.deadline:
+                    left_min = max(limits.deadline - time.time(), 0.0) / 60.0
+                    print(
+                        f"{name}: estimated {estimate_h * 60:.0f} min, {left_min:.0f} min left before the "
+                        "deadline: queue stopped (the same command resumes it)",
+                        flush=True,
+                    )
+                    state["stopped"] = True
+                    return
+                if limits.min_free_gb and free_gb(run_dir) < limits.min_free_gb:
+                    print(
+                        f"{name}: {free_gb(run_dir):.1f} GB free under {run_dir.parent}, below the queue's "
+                        f"{limits.min_free_gb:g} GB: queue stopped (free disk, or lower --min-free-gb)",
+                        flush=True,
+                    )
+                    state["stopped"], state["failed"] = True, state["failed"] + 1
+                    return
+                scene, planner, seed, budget, gsd_m, cell_overrides = cell
+                command = [
+                    sys.executable,
+                    "run.py",
+                    f"scene={scene}",
+                    f"planner={planner}",
+                    f"seed={seed}",
+                    f"budget={budget}",
+                    f"survey.target_gsd_m={gsd_m!r}",
+                    f"hydra.run.dir={run_dir}",
+                    *cell_overrides,
+                    *overrides,
+                ]
                 shutil.rmtree(run_dir, ignore_errors=True)
                 print(f"{name}: running at {head} into {run_dir} (attempt {attempt})", flush=True)
-                code = subprocess.run(command, cwd=tree, env=env).returncode
+                yield Job((cell, attempt), command, tree, env)
+
+        while queue and not state["stopped"]:
+            for job, code in launch(jobs(), launcher, n_jobs):
+                cell, attempt = job.key
+                name, run_dir = name_of(cell), run_dir_of(cell)
+                scene, seed = cell[0], int(cell[2])
+                retry = attempt < max(limits.attempts, 1)
                 if not (run_dir / "metrics.json").is_file():
                     print(f"{name}: exit {code} and no metrics.json: nothing recorded", flush=True)
-                    ok = False
+                    if retry:
+                        queue.appendleft((cell, attempt + 1))
+                    else:
+                        state["failed"] += 1
                     continue
                 metrics = read_metrics(run_dir)
                 other = other_proxy(proxies, metrics)
@@ -394,7 +427,7 @@ def run_queue(
                 if commit:
                     commit_with_retry(dest, line)
                 if other is not None:
-                    expected = proxies[(scene, int(seed))]
+                    expected = proxies[(scene, seed)]
                     print(
                         f"error: {scene} / seed {seed}: this cell planned on proxy {other[:8]}, the group's "
                         f"recorded cells on {expected[:8]}; recorded under {os.path.relpath(dest, ROOT)}, "
@@ -402,15 +435,17 @@ def run_queue(
                         "(run the group again on one proxy, or restore the proxy it planned on)",
                         flush=True,
                     )
-                    return failed + 1
-                if ok:
-                    if metrics.get("proxy_fingerprint"):
-                        proxies.setdefault((scene, int(seed)), str(metrics["proxy_fingerprint"]))
-                    break
-            failed += not ok
-            if limits.prune:
-                shutil.rmtree(run_dir, ignore_errors=True)
-    return failed
+                    state["stopped"], state["failed"] = True, state["failed"] + 1
+                    continue
+                if ok and metrics.get("proxy_fingerprint"):
+                    proxies.setdefault((scene, seed), str(metrics["proxy_fingerprint"]))
+                if not ok and retry:
+                    queue.appendleft((cell, attempt + 1))
+                    continue
+                state["failed"] += not ok
+                if limits.prune:
+                    shutil.rmtree(run_dir, ignore_errors=True)
+    return state["failed"]
 
 
 def other_proxy(proxies: dict[tuple[str, int], str], metrics: dict) -> str | None:

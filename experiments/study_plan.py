@@ -2,6 +2,7 @@
 
     uavplan-study study-plan                               # the cells by phase, cell-hours left
     uavplan-study study-plan --run --until 15:40           # resume the queue until 15:40 (any machine)
+    uavplan-study study-plan --run --launcher ray --jobs 16   # fan the cells out over a Ray cluster
 
 ``--run`` hands the cells left to the record queue (``experiments.record.run_queue``): one at a time
 from a worktree of HEAD, each record committed to ``results/cells/protocol<N>/`` as it finishes.
@@ -38,6 +39,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from experiments.launch import LAUNCHERS
 from experiments.runs import RunDirectoryError, load_runs, runs_frame
 from pipeline.protocol import PROTOCOL, STUDY_SCENES
 from planner.budget import DEFAULT_LEVEL, level_rank
@@ -300,10 +302,13 @@ def run_cells(
     overrides: Sequence[str],
     limits=None,
     commit: bool = True,
+    launcher: str = "local",
+    n_jobs: int = 1,
 ) -> int:
     """Run ``cells`` through the record queue, each group of one record folder in order (a noise
     repeat with a stage cache of its own), each scene and seed on its committed proxy, within
-    ``limits`` (``experiments.record.QueueLimits``). Returns the number of failed cells."""
+    ``limits`` (``experiments.record.QueueLimits``), on ``launcher`` with ``n_jobs`` cells at once
+    (``experiments.launch``). Returns the number of failed cells."""
     from experiments.record import QueueLimits, run_queue
 
     limits = limits or QueueLimits()
@@ -350,6 +355,8 @@ def run_cells(
             proxies=proxies,
             limits=limits,
             commit=commit,
+            launcher=launcher,
+            n_jobs=n_jobs,
         )
     return failed
 
@@ -406,6 +413,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument("--keep-runs", action="store_true", help="keep run directories after recording")
     parser.add_argument(
+        "--launcher", default="local", choices=LAUNCHERS, help="where cells run (experiments/launch.py)"
+    )
+    parser.add_argument("--jobs", type=int, default=1, help="cells at once (joblib, ray, slurm)")
+    parser.add_argument(
         "--set", action="append", default=[], help="a run.py override for every cell (off the protocol)"
     )
     args = parser.parse_args(argv)
@@ -459,7 +470,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         min_free_gb=args.min_free_gb,
         prune=not args.keep_runs,
     )
-    failed = run_cells(left, args.preset, args.study, args.set, limits)
+    failed = run_cells(
+        left, args.preset, args.study, args.set, limits, launcher=args.launcher, n_jobs=args.jobs
+    )
     return 1 if failed else 0
 
 

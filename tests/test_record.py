@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -147,67 +146,76 @@ def test_a_cell_on_another_proxy_than_its_group_is_named_and_filed_apart():
     assert other_proxy(proxies, {"scene": "tomb", "seed": 0}) is None
 
 
+FAKE_RUN = """
+import fcntl, json, os, sys
+from pathlib import Path
+values = dict(item.split("=", 1) for item in sys.argv[1:])
+outcomes = Path(os.environ["FAKE_OUTCOMES"])
+with open(os.environ["FAKE_RUNS"], "a") as log:  # the lock: two workers take two outcomes
+    fcntl.flock(log, fcntl.LOCK_EX)
+    script = outcomes.read_text().split()
+    status, rest = script[0], script[1:]
+    outcomes.write_text(" ".join(rest))
+    log.write(values["hydra.run.dir"] + "\\n")
+run_dir = Path(values["hydra.run.dir"])
+metrics = {
+    "scene": values["scene"], "planner": values["planner"], "seed": int(values["seed"]),
+    "budget": values["budget"], "target_gsd_m": float(values["survey.target_gsd_m"]),
+    "status": status, "protocol": 1, "planner_version": 1, "n_images": 10, "cell_wall_time_s": 60.0,
+}
+if status != "ok":
+    metrics.update(failed_stage="reconstruct", error="RuntimeError: no model")
+(run_dir / "images").mkdir(parents=True)
+(run_dir / "metrics.json").write_text(json.dumps(metrics))
+sys.exit(0 if status == "ok" else 1)
+"""
+
+
 class FakeCells:
-    """Stands in for ``run.py`` under the queue: each run writes the ``metrics.json`` its script says
-    (``ok`` or ``failed``) into ``hydra.run.dir``; git commands run for real."""
+    """Stands in for ``run.py`` under the queue: a script in the queue's worktree that writes the
+    ``metrics.json`` its outcomes say (``ok`` or ``failed``) into ``hydra.run.dir``, a process of its
+    own as ``run.py`` is (so every launcher runs it as it would a cell); git runs for real."""
 
     def __init__(self, monkeypatch, tmp_path, outcomes):
-        import subprocess as real_subprocess
         from contextlib import contextmanager
 
         import experiments.record as record
 
-        self.outcomes = list(outcomes)
-        self.runs = []
-        real_run = real_subprocess.run
-
-        def run(command, *args, **kwargs):
-            if command[:2] != [sys.executable, "run.py"]:
-                return real_run(command, *args, **kwargs)
-            values = dict(item.split("=", 1) for item in command[2:])
-            run_dir = Path(values["hydra.run.dir"])
-            self.runs.append(values)
-            status = self.outcomes.pop(0)
-            metrics = {
-                "scene": values["scene"],
-                "planner": values["planner"],
-                "seed": int(values["seed"]),
-                "budget": values["budget"],
-                "target_gsd_m": float(values["survey.target_gsd_m"]),
-                "status": status,
-                "protocol": 1,
-                "planner_version": 1,
-                "n_images": 10,
-                "cell_wall_time_s": 60.0,
-            }
-            if status != "ok":
-                metrics.update(failed_stage="reconstruct", error="RuntimeError: no model")
-            (run_dir / "images").mkdir(parents=True)
-            (run_dir / "metrics.json").write_text(json.dumps(metrics))
-            return real_subprocess.CompletedProcess(command, 0 if status == "ok" else 1)
+        tree = tmp_path / "tree"
+        tree.mkdir()
+        (tree / "run.py").write_text(FAKE_RUN)
+        self.outcomes, self.log = tmp_path / "outcomes.txt", tmp_path / "runs.txt"
+        self.outcomes.write_text(" ".join(outcomes))
+        self.log.write_text("")
+        monkeypatch.setenv("FAKE_OUTCOMES", str(self.outcomes))
+        monkeypatch.setenv("FAKE_RUNS", str(self.log))
 
         @contextmanager
         def worktree(revision, prefix=""):
-            yield tmp_path / "tree"
+            yield tree
 
-        monkeypatch.setattr(record.subprocess, "run", run)
         monkeypatch.setattr(record, "revision_worktree", worktree)
+
+    @property
+    def runs(self) -> list[str]:
+        return self.log.read_text().split()
 
 
 CELL = ("tomb", "ours", 0, "default", 0.03)
 
 
-def queue(tmp_path, limits, force=False):
+def queue(tmp_path, limits, force=False, cells=(CELL,), **launch):
     from experiments.record import run_queue
 
     return run_queue(
-        [CELL],
+        list(cells),
         "q",
         tmp_path / "runs",
         commit=False,
         limits=limits,
         force=force,
         records_root=tmp_path / "cells",
+        **launch,
     )
 
 
@@ -232,7 +240,7 @@ def test_a_cell_that_fails_once_is_recorded_from_its_second_run_and_pruned(monke
     assert len(cells.runs) == 2
     record = json.loads((record_dir("q", *CELL, root=tmp_path / "cells") / "metrics.json").read_text())
     assert record["status"] == "ok"
-    assert not Path(cells.runs[-1]["hydra.run.dir"]).exists()  # the run directory, pruned
+    assert not Path(cells.runs[-1]).exists()  # the run directory, pruned
 
 
 def test_no_cell_starts_past_the_deadline_or_below_the_disk_floor(monkeypatch, tmp_path, capsys):
@@ -266,3 +274,17 @@ def test_a_record_of_another_protocol_or_planner_version_is_run_again(monkeypatc
         assert current_record(path, 1) is None
         assert queue(tmp_path, limits) == 0
     assert len(cells.runs) == 3
+
+
+@pytest.mark.parametrize("launcher", ["joblib", "ray_local"])
+def test_a_launcher_runs_the_cells_and_the_driver_records_them(monkeypatch, tmp_path, launcher):
+    """Three cells, two workers: every cell recorded once by the driver, the failed one run again."""
+    from experiments.record import QueueLimits
+
+    cells = [CELL, ("tomb", "smith", 0, "default", 0.03), ("church", "ours", 0, "low", 0.03)]
+    fake = FakeCells(monkeypatch, tmp_path, ["ok", "failed", "ok", "ok"])
+    assert queue(tmp_path, QueueLimits(min_free_gb=0.0), cells=cells, launcher=launcher, n_jobs=2) == 0
+    assert len(fake.runs) == 4
+    for cell in cells:
+        record = json.loads((record_dir("q", *cell, root=tmp_path / "cells") / "metrics.json").read_text())
+        assert record["status"] == "ok" and record["planner"] == cell[1]
