@@ -33,6 +33,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+# GNSS noise (m) below which a rendered flight's photos are written as an RTK drone's (RtkFlag 50).
+RTK_MAX_SIGMA_M = 0.1
 
 
 def _rational(value: float, denominator: int = 10000) -> str:
@@ -59,8 +61,10 @@ def write_photo(
     pitch_deg: float,
     focal_mm: float,
     pixels_per_mm: float,
+    extra_xmp: dict | None = None,
 ) -> Path:
-    """Write ``rgb`` as a JPEG with a drone's EXIF GPS and camera and DJI XMP attitude tags."""
+    """Write ``rgb`` as a JPEG with a drone's EXIF GPS and camera and DJI XMP attitude tags
+    (``extra_xmp``: more ``drone-dji`` tags by name, e.g. ``{"RtkFlag": "50"}``)."""
     import pyexiv2
     from PIL import Image
 
@@ -96,6 +100,8 @@ def write_photo(
         }
         if relative_altitude_m is not None:
             xmp["Xmp.drone-dji.RelativeAltitude"] = f"{relative_altitude_m:+.3f}"
+        for key, value in (extra_xmp or {}).items():
+            xmp[f"Xmp.drone-dji.{key}"] = str(value)
         image.modify_xmp(xmp)
     return path
 
@@ -106,7 +112,9 @@ def photos_from_flight(
     """Write a rendered flight (``image_dir`` with ``cameras.json``) as a drone's JPEGs in ``out_dir``.
 
     Positions are the true ones plus Gaussian noise of ``gnss_sigma_m`` per axis; the barometric
-    ``RelativeAltitude`` is the true height above the origin with the same noise.
+    ``RelativeAltitude`` is the true height above the origin with the same noise. Below
+    ``RTK_MAX_SIGMA_M`` the photos are an RTK drone's: DJI XMP ``RtkFlag`` 50 (fixed) and
+    ``RtkStdLon/Lat/Hgt`` of that sigma.
     """
     from PIL import Image
 
@@ -121,6 +129,10 @@ def photos_from_flight(
     heading = origin.heading_from_yaw(cameras.viewpoints[:, 3])
     pixels_per_mm = cameras.intrinsics.width / sensor_width_mm
     focal_mm = cameras.intrinsics.focal_px / pixels_per_mm
+    rtk = None
+    if gnss_sigma_m < RTK_MAX_SIGMA_M:
+        std = f"{gnss_sigma_m:.4f}"
+        rtk = {"RtkFlag": "50", "RtkStdLon": std, "RtkStdLat": std, "RtkStdHgt": std}
     for i, name in enumerate(cameras.names):
         with Image.open(Path(image_dir) / name) as image:
             rgb = np.asarray(image.convert("RGB"))
@@ -135,6 +147,7 @@ def photos_from_flight(
             float(cameras.viewpoints[i, 4]),
             focal_mm,
             pixels_per_mm,
+            rtk,
         )
     return out_dir
 

@@ -19,12 +19,14 @@ missions in the photos' own coordinates. The run directory::
 from __future__ import annotations
 
 import logging
+import math
 import time
 from pathlib import Path
 
 import numpy as np
 from omegaconf import DictConfig
 
+from mission.export import export_mission
 from scene.config import plain
 from scene.io import write_json_atomic
 
@@ -37,57 +39,114 @@ def plan_from_photos(cfg: DictConfig, run_dir: Path) -> dict:
     """Run the whole job on ``cfg.photos.dir`` into ``run_dir``; returns the report it writes.
 
     Raises:
-        pipeline.photos.PhotoError: the photos cannot make a flight (named in the message).
+        pipeline.photos.PhotoError: the photos cannot make a flight, or the model they gave fails the
+            sanity gate (named in the message, with the setting that changes it).
         pipeline.settings.SettingsError: a bad setting (before any photo is reconstructed).
         reconstruct.errors.ReconstructionError, scene.plan.PlanningError: a stage failed.
     """
     from drone.model import DroneSettings
     from evaluate.settings import EvaluationSettings
-    from mission.export import export_mission
-    from mission.geo import SurveyOrigin
+    from mission.controllers import ControllerError, caps_for
     from pipeline.cell import plan_stage
-    from pipeline.photos import read_photos, takeoff_origin, write_photo_flight
-    from pipeline.proxy import PROXY_FILE, load_proxy
+    from pipeline.photo_setup import photo_reconstruct_config
+    from pipeline.photos import (
+        local_viewpoints,
+        parse_origin,
+        photo_intrinsics,
+        read_photos,
+        takeoff_height_known,
+        takeoff_origin,
+        write_photo_flight,
+    )
+    from pipeline.proxy import PROXY_FILE
     from pipeline.settings import SettingsError, check_planner, planner_setup
     from reconstruct.dense_settings import DenseSettings
     from reconstruct.flight import read_flight
-    from reconstruct.pipeline import build_proxy
     from reconstruct.sfm_settings import SfmSettings
+    from reconstruct.timing import cpu_seconds
 
-    start = time.perf_counter()
+    start, cpu_start = time.perf_counter(), cpu_seconds()
     run_dir = Path(run_dir)
     folder = Path(str(cfg.photos.dir))
+    photos_cfg = plain(cfg.photos)
     try:  # every setting before the first photo is read
         params, budget = planner_setup(cfg)
-        SfmSettings.from_config(cfg.reconstruct.sfm)
         DenseSettings.from_config(cfg.reconstruct.dense)
         evaluation = EvaluationSettings.from_config(cfg.evaluate)
         drone = DroneSettings.from_config(plain(cfg.drone))
-        origin = SurveyOrigin.parse(str(cfg.photos.origin)) if cfg.photos.get("origin") else None
+        given_origin = parse_origin(photos_cfg["origin"]) if photos_cfg.get("origin") is not None else None
     except ValueError as exc:
         raise SettingsError(str(exc)) from exc
 
     report = read_photos(folder, int(cfg.photos.min_photos))
-    origin = takeoff_origin(report.records, origin)
-    image_dir = write_photo_flight(folder, run_dir / "images", report, origin)
-    intrinsics = read_flight(image_dir).intrinsics
+    try:
+        caps = caps_for(report.records[0].camera, str(photos_cfg["controller"]), photos_cfg["max_waypoints"])
+    except ControllerError as exc:
+        raise SettingsError(str(exc)) from exc
+    height_known = given_origin is not None or takeoff_height_known(report.records)
+    origin = takeoff_origin(report.records, given_origin)
+    recon_cfg, used = photo_reconstruct_config(
+        plain(cfg.reconstruct), photos_cfg, report.records, local_viewpoints(report.records, origin)
+    )
+    try:
+        SfmSettings.from_config(recon_cfg["sfm"])
+    except ValueError as exc:
+        raise SettingsError(str(exc)) from exc
+    used["origin"] = {
+        "source": "photos.origin"
+        if given_origin is not None
+        else ("RelativeAltitude" if height_known else "the ground under the flight (reconstruction)"),
+    }
+    used["mission_caps"] = caps
+    _log_settings(used, len(report.records), report.records[0].camera)
+    image_dir = write_photo_flight(
+        folder, run_dir / "images", report, origin, used["camera"], photos_cfg.get("proxy_image_size")
+    )
+    intrinsics = photo_intrinsics(report.records, used["camera"])  # the photos' own size: the plan's
     try:
         check_planner(str(cfg.planner._target_), params, intrinsics)
     except ValueError as exc:
         raise SettingsError(str(exc)) from exc
     log.info(
-        "%d photos in a local frame at %.6f, %.6f, %.1f m",
+        "%d photos in a local frame at %.6f, %.6f, %.1f m%s",
         len(report.records),
         origin.latitude_deg,
         origin.longitude_deg,
         origin.height_m,
+        ""
+        if height_known
+        else " (provisional: the photos' altitude; moved to the ground once reconstructed)",
     )
 
     seed = int(cfg.seed)
-    roi = site_box(str(cfg.photos.roi), origin) if cfg.photos.get("roi") else None
-    mesh, recon = build_proxy(image_dir, run_dir / "recon", cfg.reconstruct, seed, roi=roi)
+    roi = site_box(photos_cfg["roi"], origin) if photos_cfg.get("roi") is not None else None
+    attitude_logged = all(r.pitch_deg is not None and r.heading_deg is not None for r in report.records)
+    mesh, recon, sanity = _reconstruct_with_gate(
+        image_dir, run_dir, recon_cfg, seed, roi, photos_cfg, attitude_logged
+    )
+    ground = _ground_height(Path(recon["sparse_dir"]), Path(recon["dense_ply"]))
+    ground_record = {"ground_z_m": round(ground, 3)}
+    if not height_known:
+        # No take-off height in the photos: z = 0 (and the ceiling) on the ground under the flight.
+        from pipeline.photos import ground_origin
+
+        origin = ground_origin(origin, ground)
+        mesh.apply_translation([0.0, 0.0, -ground])
+        ground_record |= {
+            "takeoff_height_m": round(origin.height_m, 3),
+            "note": "no RelativeAltitude: the take-off point is the ground the reconstruction found "
+            "under the flight (its 10th height percentile), the ceiling is measured from it",
+        }
+        log.info(
+            "take-off height from the reconstruction: the ground under the flight at %.1f m above sea "
+            "level (%.1f m below the photos' median altitude)",
+            origin.height_m,
+            -ground,
+        )
     mesh.export(run_dir / PROXY_FILE)
-    proxy = load_proxy(run_dir)
+    proxy = _photo_proxy(
+        run_dir, Path(recon["sparse_dir"]).parent, image_dir, 0.0 if height_known else ground
+    )
     plan, plan_record = plan_stage(
         proxy,
         intrinsics,
@@ -103,61 +162,267 @@ def plan_from_photos(cfg: DictConfig, run_dir: Path) -> dict:
     missions = {}
     for fmt, name in MISSION_FILES.items():
         _, paths = export_mission(
-            np.asarray(plan.viewpoints), origin, drone, fmt, run_dir / "missions" / name
+            np.asarray(plan.viewpoints), origin, drone, fmt, run_dir / "missions" / name, caps[fmt]
         )
         missions[fmt] = [str(p) for p in paths]
 
     registered = _registered_names(Path(recon["sparse_dir"]))
     lo, hi = mesh.bounds
+    heights = np.asarray(plan.viewpoints)[:, 2]
     result = {
         "photos": {**report.as_dict(), "folder": str(folder.resolve()), "camera": report.records[0].camera},
+        "settings_used": used,
         "origin": {
             "latitude_deg": origin.latitude_deg,
             "longitude_deg": origin.longitude_deg,
             "height_m": origin.height_m,
             "x_axis_heading_deg": origin.x_axis_heading_deg,
+            "source": used["origin"]["source"],
         },
+        "ground": ground_record,
         "registration": {
             "n_registered": int(recon["n_registered"]),
             "not_registered": sorted({r.name for r in report.records} - registered),
             # The aligned cameras against their own GNSS fixes: how well the model fits the fixes.
             "gnss_residual_median_m": recon.get("position_error_median_m"),
             "gnss_residual_p90_m": recon.get("position_error_p90_m"),
+            "rotation_to_gimbal_median_deg": recon.get("rotation_error_median_deg"),
+            "mapping": recon_cfg["sfm"]["mapping"]["method"],
         },
+        "sanity": sanity,
         "proxy": {
             "extent_m": (hi - lo).round(2).tolist(),
             "bounds_m": [lo.round(2).tolist(), hi.round(2).tolist()],
             "n_faces": len(mesh.faces),
         },
         "plan": {**budget, **plan_record, "planner": cfg.planner.name},
+        "waypoints": {
+            "height_min_m": round(float(heights.min()), 2),
+            "height_max_m": round(float(heights.max()), 2),
+            "ceiling_m": drone.ceiling_m,
+            "floor_m": drone.min_height_m,
+        },
         "missions": missions,
-        "time_s": time.perf_counter() - start,
     }
+    try:
+        from pipeline.photo_figure import write_flight_figure
+
+        result["figure"] = str(
+            write_flight_figure(
+                run_dir / "flight.png", proxy, read_flight(image_dir), plan, registered, result
+            )
+        )
+    except Exception as exc:  # the picture is for the crew; a failure to draw it stops nothing
+        log.warning("flight.png not drawn: %s", exc)
+    result["time_s"] = time.perf_counter() - start
+    result["cpu_s"] = cpu_seconds() - cpu_start
     write_json_atomic(run_dir / "report.json", result)
     log.info(
-        "plan-photos: %d of %d photos registered (GNSS residual median %.3f m); proxy %s m; %d views, "
-        "%.1f min, %d batteries; missions in %s",
+        "plan-photos: %d of %d photos registered (GNSS residual median %.3f m); proxy %s m; %d views at "
+        "%.1f-%.1f m above take-off, %.1f min, %d batteries; missions in %s; %.0f s (%.0f s CPU)",
         result["registration"]["n_registered"],
         result["photos"]["n_photos"],
         result["registration"]["gnss_residual_median_m"] or float("nan"),
         result["proxy"]["extent_m"],
         plan_record["n_viewpoints"],
+        heights.min(),
+        heights.max(),
         plan_record["flight_time_s"] / 60.0,
         plan_record["n_batteries"],
         run_dir / "missions",
+        result["time_s"],
+        result["cpu_s"],
     )
     return result
 
 
-def site_box(text: str, origin):
-    """The local box (``scene.base.Box``, metres; all heights) of a ``SOUTH,WEST,NORTH,EAST`` site."""
+def _log_settings(used: dict, n_photos: int, camera: str) -> None:
+    """The values the run uses, printed before the first photo is reconstructed."""
+    gnss, cam, refine = used["gnss"], used["camera"], used["refine"]
+    log.info("%d photos of %s", n_photos, camera)
+    log.info(
+        "GNSS: %s, sigma %.3f m from %s (%s)", gnss["name"], gnss["sigma_m"], gnss["source"], gnss["why"]
+    )
+    log.info(
+        "camera: %s %s from %s (%s)",
+        cam["model"],
+        [round(v, 4) for v in cam["params"]],
+        cam["source"],
+        cam["why"],
+    )
+    log.info(
+        "camera refinement: focal %s, distortion %s (%s)",
+        refine["refine_focal_length"]["value"],
+        refine["refine_extra_params"]["value"],
+        refine["why"],
+    )
+    log.info(
+        "take-off height from %s; waypoints per mission file %s",
+        used["origin"]["source"],
+        used["mission_caps"],
+    )
+
+
+def _reconstruct_with_gate(image_dir, run_dir, recon_cfg, seed, roi, photos_cfg, attitude_logged):
+    """``build_proxy`` behind the sanity gate: a model that fails it is mapped again with the other
+    mapper (incremental <-> global), and refused when that fails too. Returns (mesh, record, the
+    gate's record)."""
+    from pipeline.photo_setup import sanity_failures
+    from pipeline.photos import PhotoError
+    from reconstruct.errors import ReconstructionError
+    from reconstruct.pipeline import build_proxy
+
+    sigma = float(recon_cfg["gnss"]["sigma_m"])
+    tries = []
+
+    def gate(record):
+        failures = sanity_failures(
+            record,
+            sigma,
+            float(photos_cfg["max_residual_sigmas"]),
+            float(photos_cfg["max_rotation_deg"]),
+            attitude_logged,
+        )
+        if failures:
+            raise ReconstructionError("; ".join(failures), {"stage": "sanity"})
+
+    first = recon_cfg["sfm"]["mapping"]["method"]
+    other = "global" if first == "incremental" else "incremental"
+    for attempt, method in enumerate((first, other)):
+        cfg_try = {**recon_cfg, "sfm": {**recon_cfg["sfm"], "mapping": {**recon_cfg["sfm"]["mapping"]}}}
+        cfg_try["sfm"]["mapping"]["method"] = method
+        out = run_dir / ("recon" if attempt == 0 else f"recon_{method}")
+        try:
+            mesh, recon = build_proxy(image_dir, out, cfg_try, seed, roi=roi, sparse_check=gate)
+        except ReconstructionError as exc:
+            if exc.record.get("stage") != "sanity":
+                raise
+            tries.append(
+                {
+                    "mapping": method,
+                    "failed": str(exc),
+                    "residual_m": exc.record.get("position_error_median_m"),
+                    "rotation_deg": exc.record.get("rotation_error_median_deg"),
+                }
+            )
+            log.warning(
+                "sanity gate: the %s model fails (%s)%s",
+                method,
+                exc,
+                "; mapping again with the " + other + " mapper" if attempt == 0 else "",
+            )
+            continue
+        tries.append({"mapping": method, "passed": True})
+        recon_cfg["sfm"]["mapping"]["method"] = method
+        return (
+            mesh,
+            recon,
+            {
+                "max_residual_sigmas": float(photos_cfg["max_residual_sigmas"]),
+                "max_rotation_deg": float(photos_cfg["max_rotation_deg"]),
+                "attitude_checked": attitude_logged,
+                "tries": tries,
+            },
+        )
+    last = tries[-1]
+    raise PhotoError(
+        gate_refusal(
+            last["failed"],
+            last.get("residual_m"),
+            sigma,
+            float(photos_cfg["max_residual_sigmas"]),
+            last.get("rotation_deg"),
+            float(photos_cfg["max_rotation_deg"]),
+        )
+    )
+
+
+def gate_refusal(
+    failure: str,
+    residual_m: float | None,
+    sigma_m: float,
+    max_sigmas: float,
+    rotation_deg: float | None = None,
+    max_rotation_deg: float = 5.0,
+) -> str:
+    """The sanity gate's refusal, one line: what failed with both mappers and the setting that would
+    let such a model through, typed as it runs (a GNSS class that was wrong, or an attitude the
+    gimbal did not log truly); a setting to use only when the photos' tags are known to be so."""
+    if residual_m is not None and residual_m > max_sigmas * sigma_m:
+        sigma = math.ceil(residual_m / max_sigmas * 10.0) / 10.0
+        fix = f"reconstruct.gnss.sigma_m={sigma:.1f}"
+        why = "if the photos' GNSS is that poor"
+    elif rotation_deg is not None and rotation_deg > max_rotation_deg:
+        fix = f"photos.max_rotation_deg={math.ceil(rotation_deg + 1.0):.0f}"
+        why = "if the gimbal's logged attitude is known to be that far off"
+    else:
+        fix = "photos.camera=exif"
+        why = "to start from the EXIF camera"
+    return (
+        f"no model fit to plan on (with both mappers): {failure}; check the photos' GNSS tags, "
+        f"or give {fix} {why}"
+    )
+
+
+def _photo_proxy(run_dir: Path, recon_dir: Path, image_dir: Path, shift_z: float):
+    """The proxy as ``pipeline.proxy.load_proxy`` gives it, its cloud from the reconstruction that
+    passed the gate (``recon_dir``), moved down by ``shift_z`` (m) with the mesh where the take-off
+    height came from the ground; the registered views go with it only where nothing moved."""
+    from pipeline.proxy import CLOUD_VOXEL_M, PROXY_FILE, load_proxy
+    from reconstruct.proxy import oriented_cloud
+    from scene.base import Box
+    from scene.proxy_mesh import PROXY_CLOUD_KEY, PROXY_VIEWS_KEY
+
+    if recon_dir == run_dir / "recon" and shift_z == 0.0:
+        return load_proxy(run_dir)
+    import trimesh
+
+    proxy = trimesh.load(run_dir / PROXY_FILE, force="mesh", process=False)
+    dense_ply = recon_dir / "dense.ply"
+    if dense_ply.is_file():
+        box = Box.from_points(proxy.vertices + np.array([0.0, 0.0, shift_z]))
+        cloud = dict(oriented_cloud(dense_ply, box.expanded(1.0, 1.0, 1.0), CLOUD_VOXEL_M))
+        cloud["points"] = np.asarray(cloud["points"]) - np.array([0.0, 0.0, shift_z])
+        proxy.metadata[PROXY_CLOUD_KEY] = cloud
+    if shift_z == 0.0:
+        proxy.metadata[PROXY_VIEWS_KEY] = {"recon_dir": recon_dir, "image_dir": image_dir}
+    return proxy
+
+
+def _ground_height(sparse_dir: Path, dense_ply: Path) -> float:
+    """The ground under the flight (m, local z): the 10th height percentile of the dense cloud's
+    points below the cameras' horizontal extent (the sparse points' where the cloud is empty)."""
+    import pycolmap
+    import trimesh
+
+    rec = pycolmap.Reconstruction(str(sparse_dir))
+    centres = np.array([rec.image(i).projection_center() for i in rec.reg_image_ids()])
+    try:
+        points = np.asarray(trimesh.load(dense_ply).vertices)
+    except Exception:  # noqa: BLE001 - any unreadable cloud: fall back on the sparse points
+        points = np.zeros((0, 3))
+    if len(points) == 0:
+        points = np.array([p.xyz for p in rec.points3D.values()])
+    lo, hi = centres[:, :2].min(0), centres[:, :2].max(0)
+    inside = np.all((points[:, :2] >= lo) & (points[:, :2] <= hi), axis=1)
+    below = points[inside] if inside.sum() >= 100 else points
+    return float(np.percentile(below[:, 2], 10.0))
+
+
+def site_box(text, origin):
+    """The local box (``scene.base.Box``, metres; all heights) of a ``[SOUTH,WEST,NORTH,EAST]`` site
+    (a list, as Hydra takes it typed, or a string)."""
     from pipeline.photos import PhotoError
     from scene.base import Box
 
+    parts = text.replace("[", "").replace("]", "").split(",") if isinstance(text, str) else list(text)
     try:
-        south, west, north, east = (float(v) for v in text.split(","))
-    except ValueError as exc:
-        raise PhotoError(f"photos.roi={text!r}: expected SOUTH,WEST,NORTH,EAST in degrees") from exc
+        south, west, north, east = (float(v) for v in parts)
+    except (TypeError, ValueError) as exc:
+        raise PhotoError(
+            f"photos.roi={text!r}: expected [SOUTH,WEST,NORTH,EAST] in degrees, typed "
+            "photos.roi=[47.3975,8.5452,47.3981,8.5461]"
+        ) from exc
     if not (-90 <= south < north <= 90 and -180 <= west < east <= 180):
         raise PhotoError(
             f"photos.roi={text!r}: need -90 <= south < north <= 90 and -180 <= west < east <= 180"

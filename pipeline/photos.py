@@ -64,6 +64,17 @@ class PhotoRecord:
     width: int
     height: int
     camera: str
+    # DJI XMP where the drone logs them (None otherwise): the RTK solution (``RtkFlag``: 0 none,
+    # 16 single point, 34 float, 50 fixed) and its standard deviations (m: ``RtkStdLon``,
+    # ``RtkStdLat``, ``RtkStdHgt``); the factory calibration (``CalibratedFocalLength``,
+    # ``CalibratedOpticalCenterX/Y`` in px; ``DewarpData``: fx, fy, cx, cy offsets from the optical
+    # centre, k1, k2, p1, p2, k3).
+    rtk_flag: int | None = None
+    rtk_std_m: tuple[float, float, float] | None = None
+    calibrated_focal_px: float | None = None
+    calibrated_center_px: tuple[float, float] | None = None
+    dewarp: tuple[float, ...] | None = None
+    roll_deg: float | None = None
 
 
 @dataclass
@@ -104,6 +115,33 @@ def _float(xmp: dict, key: str) -> float | None:
         return None
     value = float(str(value).strip())
     return value if math.isfinite(value) else None
+
+
+def _text(xmp: dict, key: str) -> str | None:
+    value = xmp.get(f"Xmp.drone-dji.{key}")
+    return None if value is None else str(value).strip()
+
+
+def parse_dewarp(text: str | None) -> tuple[float, ...] | None:
+    """DJI's ``DewarpData`` (``"DATE;fx,fy,cx,cy,k1,k2,p1,p2,k3"``) as its nine numbers, or None
+    when absent or not nine finite numbers."""
+    if not text:
+        return None
+    values = text.split(";", 1)[-1].split(",")
+    try:
+        numbers = tuple(float(v) for v in values)
+    except ValueError:
+        return None
+    if len(numbers) != 9 or not all(math.isfinite(v) for v in numbers) or numbers[0] <= 0:
+        return None
+    return numbers
+
+
+def _rtk(xmp: dict) -> tuple[int | None, tuple[float, float, float] | None]:
+    flag = _float(xmp, "RtkFlag")
+    stds = [_float(xmp, key) for key in ("RtkStdLon", "RtkStdLat", "RtkStdHgt")]
+    std = tuple(stds) if all(v is not None and v >= 0 for v in stds) else None
+    return (None if flag is None else int(round(flag))), std
 
 
 def _register_dji_namespace() -> None:
@@ -165,6 +203,9 @@ def read_photo(path: Path) -> PhotoRecord:
         heading = _float(xmp, "GimbalYawDegree")
         if heading is None:
             heading = _float(xmp, "FlightYawDegree")
+        rtk_flag, rtk_std = _rtk(xmp)
+        center = (_float(xmp, "CalibratedOpticalCenterX"), _float(xmp, "CalibratedOpticalCenterY"))
+        calibrated_focal = _float(xmp, "CalibratedFocalLength")
         record = PhotoRecord(
             name=path.name,
             latitude_deg=lat,
@@ -178,6 +219,12 @@ def read_photo(path: Path) -> PhotoRecord:
             width=int(width),
             height=int(height),
             camera=f"{exif.get('Exif.Image.Make', '?')} {exif.get('Exif.Image.Model', '?')}".strip(),
+            rtk_flag=rtk_flag,
+            rtk_std_m=rtk_std,
+            calibrated_focal_px=calibrated_focal if calibrated_focal and calibrated_focal > 0 else None,
+            calibrated_center_px=center if None not in center else None,
+            dewarp=parse_dewarp(_text(xmp, "DewarpData")),
+            roll_deg=_float(xmp, "GimbalRollDegree"),
         )
     except (KeyError, ValueError, ZeroDivisionError) as exc:
         if isinstance(exc, PhotoError):
@@ -237,30 +284,94 @@ def read_photos(folder: Path, min_photos: int = 3) -> PhotoReport:
     return report
 
 
+def takeoff_height_known(records: list[PhotoRecord]) -> bool:
+    """Whether the photos say the take-off height (DJI ``RelativeAltitude`` beside an altitude)."""
+    return any(
+        r.relative_altitude_m is not None
+        and (r.absolute_altitude_m is not None or r.gps_altitude_m is not None)
+        for r in records
+    )
+
+
 def takeoff_origin(records: list[PhotoRecord], origin: SurveyOrigin | None = None) -> SurveyOrigin:
     """The local frame's origin: ``origin`` when given, else the first photo's horizontal position
     at the take-off height (median of ``AbsoluteAltitude - RelativeAltitude``, or of the GPS altitude
     minus ``RelativeAltitude``), +x east.
 
+    Photos without a take-off height (no ``RelativeAltitude``: GPS altitude above sea level only)
+    get a provisional origin at the photos' median altitude; ``pipeline.photo_survey`` moves it down
+    to the ground the reconstruction finds under the flight (``ground_origin``).
+
     Raises:
-        PhotoError: no origin given and the photos do not say the take-off height.
+        PhotoError: no origin given and the photos carry no altitude at all.
     """
     if origin is not None:
         return origin
-    heights = [
-        (r.absolute_altitude_m if r.absolute_altitude_m is not None else r.gps_altitude_m)
-        - r.relative_altitude_m
-        for r in records
-        if r.relative_altitude_m is not None
-        and (r.absolute_altitude_m is not None or r.gps_altitude_m is not None)
-    ]
-    if not heights:
-        raise PhotoError(
-            "the photos carry no RelativeAltitude (DJI XMP) to find the take-off height: "
-            "give photos.origin=LAT,LON,HEIGHT_M"
-        )
     first = records[0]
-    return SurveyOrigin(first.latitude_deg, first.longitude_deg, float(np.median(heights)), "amsl", 90.0)
+    if takeoff_height_known(records):
+        heights = [
+            (r.absolute_altitude_m if r.absolute_altitude_m is not None else r.gps_altitude_m)
+            - r.relative_altitude_m
+            for r in records
+            if r.relative_altitude_m is not None
+            and (r.absolute_altitude_m is not None or r.gps_altitude_m is not None)
+        ]
+        return SurveyOrigin(first.latitude_deg, first.longitude_deg, float(np.median(heights)), "amsl", 90.0)
+    altitudes = [
+        r.absolute_altitude_m if r.absolute_altitude_m is not None else r.gps_altitude_m
+        for r in records
+        if r.absolute_altitude_m is not None or r.gps_altitude_m is not None
+    ]
+    if not altitudes:
+        raise PhotoError(
+            "the photos carry no altitude (EXIF GPSAltitude or DJI RelativeAltitude): give the take-off "
+            f"point, photos.origin={origin_hint(first, 0.0)} with its height above sea level for 0.0"
+        )
+    return SurveyOrigin(first.latitude_deg, first.longitude_deg, float(np.median(altitudes)), "amsl", 90.0)
+
+
+def origin_hint(record: PhotoRecord, height_m: float | None = None) -> str:
+    """``photos.origin`` as Hydra takes it from a shell, typed as printed: ``[LAT,LON,HEIGHT_M]``."""
+    height = "HEIGHT_M" if height_m is None else f"{height_m:.1f}"
+    return f"[{record.latitude_deg:.6f},{record.longitude_deg:.6f},{height}]"
+
+
+def ground_origin(origin: SurveyOrigin, ground_z_m: float) -> SurveyOrigin:
+    """``origin`` moved straight down (or up) by ``ground_z_m`` (m, local z of the ground): the same
+    horizontal frame, its z = 0 on that ground."""
+    return SurveyOrigin(
+        origin.latitude_deg,
+        origin.longitude_deg,
+        origin.height_m + float(ground_z_m),
+        origin.height_reference,
+        origin.x_axis_heading_deg,
+    )
+
+
+def parse_origin(value) -> SurveyOrigin:
+    """``photos.origin`` as typed: a list ``[LAT,LON,HEIGHT_M]`` (Hydra's form, as printed) or a
+    string ``"LAT,LON,HEIGHT_M"``; heights above mean sea level.
+
+    Raises:
+        PhotoError: not two to four numbers (naming the form that works).
+    """
+    if isinstance(value, str):
+        parts = [p for p in value.replace("[", "").replace("]", "").split(",") if p.strip()]
+    else:
+        parts = list(value)
+    try:
+        numbers = [float(p) for p in parts]
+    except (TypeError, ValueError):
+        numbers = []
+    if len(numbers) != 3 or not all(math.isfinite(v) for v in numbers):
+        raise PhotoError(
+            f"photos.origin={value!r}: expected latitude, longitude and height (m above sea level) of "
+            "the take-off point, typed photos.origin=[47.397742,8.545594,488.0]"
+        )
+    lat, lon, height = numbers
+    if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
+        raise PhotoError(f"photos.origin={value!r}: latitude or longitude off the globe")
+    return SurveyOrigin(lat, lon, height, "amsl", 90.0)
 
 
 def local_viewpoints(records: list[PhotoRecord], origin: SurveyOrigin) -> np.ndarray:
@@ -286,22 +397,82 @@ def local_viewpoints(records: list[PhotoRecord], origin: SurveyOrigin) -> np.nda
     return np.column_stack([xyz, origin.yaw_from_heading(heading), np.clip(pitch, -90.0, 90.0)])
 
 
-def write_photo_flight(folder: Path, out_dir: Path, report: PhotoReport, origin: SurveyOrigin) -> Path:
-    """Link the usable photos into ``out_dir`` and write their ``cameras.json``; returns ``out_dir``."""
+def photo_intrinsics(records: list[PhotoRecord], colmap_camera: dict | None = None) -> Intrinsics:
+    """The survey camera at the photos' own size (what the planner plans for): the calibrated focal
+    length where ``colmap_camera`` carries one, else the EXIF one."""
+    first = records[0]
+    focal = float(colmap_camera["params"][0]) if colmap_camera is not None else first.focal_px
+    return Intrinsics(first.width, first.height, math.degrees(2.0 * math.atan(first.width / (2.0 * focal))))
+
+
+# COLMAP camera parameters that are pixels (scaled with the image); the rest are unitless.
+PIXEL_PARAMS = {
+    "SIMPLE_PINHOLE": 3,
+    "PINHOLE": 4,
+    "SIMPLE_RADIAL": 3,
+    "RADIAL": 3,
+    "OPENCV": 4,
+    "FULL_OPENCV": 4,
+}
+
+
+def scaled_camera(colmap_camera: dict, scale: float) -> dict:
+    """``colmap_camera`` for the image scaled by ``scale`` (focal lengths and principal point in
+    pixels scale, distortion coefficients on normalised coordinates do not)."""
+    n = PIXEL_PARAMS[colmap_camera["model"]]
+    params = [float(v) * scale if i < n else float(v) for i, v in enumerate(colmap_camera["params"])]
+    return {**colmap_camera, "params": params}
+
+
+def _downscaled(source: Path, target: Path, max_size: int) -> float:
+    """Write ``source`` (a JPEG) with its longest side at most ``max_size`` px; return the scale
+    (JPEG DCT scaling on read, then a Lanczos resize to the exact size)."""
+    from PIL import Image
+
+    with Image.open(source) as image:
+        width, height = image.size
+        scale = max_size / max(width, height)
+        size = (round(width * scale), round(height * scale))
+        image.draft("RGB", size)
+        image.convert("RGB").resize(size, Image.LANCZOS).save(target, quality=95)
+    return size[0] / width
+
+
+def write_photo_flight(
+    folder: Path,
+    out_dir: Path,
+    report: PhotoReport,
+    origin: SurveyOrigin,
+    colmap_camera: dict | None = None,
+    max_image_size: int | None = None,
+) -> Path:
+    """Link the usable photos into ``out_dir`` and write their ``cameras.json``; returns ``out_dir``.
+
+    ``colmap_camera``: the camera SfM starts from (``model``, ``params``: ``pipeline.photo_setup``);
+    None: a pinhole at the EXIF focal length. ``max_image_size``: photos larger than this (px,
+    longest side) are written downscaled to it, with the camera scaled alike (the proxy needs the
+    survey's detail, not the photos'); None: linked as they are.
+    """
     out_dir = Path(out_dir)
     if out_dir.exists():
         shutil.rmtree(out_dir)
     out_dir.mkdir(parents=True)
     records = report.records
+    first = records[0]
+    scale = 1.0
+    downscale = max_image_size is not None and max(first.width, first.height) > int(max_image_size)
     for r in records:
         source, target = Path(folder) / r.name, out_dir / r.name
+        if downscale:
+            scale = _downscaled(source, target, int(max_image_size))
+            continue
         try:
             os.link(source, target)
         except OSError:
             shutil.copyfile(source, target)
-    first = records[0]
-    hfov = math.degrees(2.0 * math.atan(first.width / (2.0 * first.focal_px)))
-    intrinsics = Intrinsics(first.width, first.height, hfov)
+    intrinsics = photo_intrinsics(records, colmap_camera)
+    if downscale:
+        intrinsics = Intrinsics(round(first.width * scale), round(first.height * scale), intrinsics.hfov_deg)
     header = {
         "scene": f"photos:{Path(folder).name}",
         "source": str(Path(folder).resolve()),
@@ -314,7 +485,11 @@ def write_photo_flight(folder: Path, out_dir: Path, report: PhotoReport, origin:
             "x_axis_heading_deg": origin.x_axis_heading_deg,
         },
         "camera": first.camera,
+        "image_scale": scale,
     }
+    if colmap_camera is not None:
+        camera = scaled_camera(colmap_camera, scale)
+        header["colmap_camera"] = {"model": camera["model"], "params": list(camera["params"])}
     write_cameras(
         out_dir,
         [r.name for r in records],

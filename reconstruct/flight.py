@@ -30,6 +30,8 @@ class Flight:
         kinds: N viewpoint labels.
         gnss_measured: the positions are a real flight's GNSS fixes (``cameras.json`` says
             ``"positions": "measured"``): they are the priors as they are, nothing is simulated.
+        colmap_camera: a real camera's COLMAP model and parameters (``cameras.json``'s
+            ``colmap_camera``: ``model``, ``params``), or None: the PINHOLE of ``intrinsics``.
     """
 
     image_dir: Path
@@ -39,6 +41,7 @@ class Flight:
     translations: np.ndarray
     kinds: tuple[str, ...]
     gnss_measured: bool = False
+    colmap_camera: dict | None = None
 
     @property
     def positions(self) -> np.ndarray:
@@ -75,6 +78,7 @@ def read_flight(image_dir: str | Path) -> Flight:
         cameras.translations,
         cameras.kinds,
         gnss_measured=cameras.extra.get("positions") == "measured",
+        colmap_camera=cameras.extra.get("colmap_camera"),
     )
 
 

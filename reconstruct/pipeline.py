@@ -236,7 +236,9 @@ def colmap_log_to(out_dir: Path) -> Iterator[None]:
         logging_.logtostderr, logging_.alsologtostderr = saved
 
 
-def reconstruct_flight(image_dir, out_dir, cfg: Mapping, seed: int, ground_truth=None) -> dict:
+def reconstruct_flight(
+    image_dir, out_dir, cfg: Mapping, seed: int, ground_truth=None, sparse_check=None
+) -> dict:
     """SfM with GNSS priors, similarity alignment to GNSS, dense depth + fusion for one flight.
 
     Skipped (the stored record is returned, ``cached`` True) when ``out_dir/recon.json`` holds the
@@ -248,6 +250,9 @@ def reconstruct_flight(image_dir, out_dir, cfg: Mapping, seed: int, ground_truth
         cfg: the ``reconstruct`` config.
         seed: seed of the GNSS noise, RANSAC and the mapper.
         ground_truth: the ground-truth mesh, for ``dense.backend=oracle`` only.
+        sparse_check: called with the record once the aligned sparse model is on disk, before the
+            dense stage; it raises ``ReconstructionError`` to stop on a model not worth densifying
+            (a real flight's sanity gate, ``pipeline.photo_setup``). None: no check.
 
     Returns:
         A flat record: ``status``, ``n_images``, ``n_registered``, ``registered_fraction``, pose
@@ -307,6 +312,8 @@ def reconstruct_flight(image_dir, out_dir, cfg: Mapping, seed: int, ground_truth
                     sparse_stage["align_time_s"],
                 )
                 record |= _drop(sparse_stage, ("status", "content_key")) | {"resumed_after_sfm": True}
+            if sparse_check is not None:
+                sparse_check(record)
             record |= _dense_stage(flight, out_dir, cfg, record, ground_truth, seed)
     except ReconstructionError as exc:
         exc.record = record | {"status": "failed", "cached": False} | exc.record
@@ -526,7 +533,7 @@ def _roi_key(roi: Box | None, pcfg: Mapping) -> list | None:
 
 
 def build_proxy(
-    image_dir, cache_dir, cfg: Mapping, seed: int, roi: Box | None = None
+    image_dir, cache_dir, cfg: Mapping, seed: int, roi: Box | None = None, sparse_check=None
 ) -> tuple[trimesh.Trimesh, dict]:
     """Reconstruct the exploratory flight and mesh its dense cloud into the planners' proxy.
 
@@ -542,6 +549,7 @@ def build_proxy(
         roi: the survey's region of interest (the box the exploratory flight was planned on). With
             ``proxy.roi_margin_m`` set, the proxy is cut to it grown by that margin sideways, so the
             planners do not spend views on the ground the exploratory flight saw around the site.
+        sparse_check: as ``reconstruct_flight``'s (a real flight's sanity gate).
 
     Returns:
         (proxy mesh in world metres, record of the reconstruction + ``proxy_faces``,
@@ -549,7 +557,9 @@ def build_proxy(
     """
     cache_dir = Path(cache_dir)
     pcfg = cfg["proxy"]
-    recon = reconstruct_flight(image_dir, cache_dir, proxy_flight_config(cfg), seed)
+    recon = reconstruct_flight(
+        image_dir, cache_dir, proxy_flight_config(cfg), seed, sparse_check=sparse_check
+    )
     min_fraction = float(pcfg["min_registered_fraction"])
     if recon["registered_fraction"] < min_fraction:
         raise ReconstructionError(

@@ -187,15 +187,22 @@ def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> Sfm
 
 
 def extract_features(database_path: Path, flight: Flight, options: SfmOptions) -> dict[str, int]:
-    """Import the flight's images with the known PINHOLE camera and extract SIFT into the database.
+    """Import the flight's images with the known camera (the PINHOLE of a rendered flight, or a real
+    flight's ``colmap_camera``) and extract SIFT into the database.
 
     Returns:
         keypoint count per image name.
     """
     intr = flight.intrinsics
     reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = "PINHOLE"
-    reader.camera_params = ",".join(repr(float(v)) for v in (intr.focal_px, intr.focal_px, intr.cx, intr.cy))
+    if flight.colmap_camera:
+        reader.camera_model = str(flight.colmap_camera["model"])
+        reader.camera_params = ",".join(repr(float(v)) for v in flight.colmap_camera["params"])
+    else:
+        reader.camera_model = "PINHOLE"
+        reader.camera_params = ",".join(
+            repr(float(v)) for v in (intr.focal_px, intr.focal_px, intr.cx, intr.cy)
+        )
     # Images enter the database one by one in flight order first: the extractor's worker threads
     # would otherwise insert them as they finish, so image ids (and every tie the mapper breaks by
     # id) changed from run to run. The extractor then fills in the keypoints of the existing rows.

@@ -11,9 +11,11 @@ from experiments.photo_roundtrip import write_photo
 from mission.geo import SurveyOrigin
 from pipeline.photos import (
     PhotoError,
+    ground_origin,
     local_viewpoints,
     read_photo,
     read_photos,
+    takeoff_height_known,
     takeoff_origin,
     write_photo_flight,
 )
@@ -123,8 +125,18 @@ def test_photos_of_two_cameras_are_refused_naming_both(tmp_path):
         read_photos(tmp_path, min_photos=2)
 
 
-def test_a_take_off_height_is_needed(tmp_path):
-    photo(tmp_path, "a.JPG", rel=None)
+def test_without_a_take_off_height_the_frame_starts_at_the_photos_altitude(tmp_path):
+    """No RelativeAltitude: a provisional origin at the photos' median altitude (plan-photos moves it
+    to the ground it reconstructs); no altitude at all: refused with the origin typed as it runs."""
+    for i, alt in enumerate((518.0, 520.0, 530.0)):
+        photo(tmp_path, f"{i}.JPG", alt=alt, rel=None)
     report = read_photos(tmp_path, min_photos=1)
-    with pytest.raises(PhotoError, match="photos.origin=LAT,LON,HEIGHT_M"):
-        takeoff_origin(report.records)
+    assert not takeoff_height_known(report.records)
+    origin = takeoff_origin(report.records)
+    assert origin.height_m == pytest.approx(520.0, abs=1e-3)
+    assert ground_origin(origin, -39.5).height_m == pytest.approx(480.5, abs=1e-3)
+    bare = type(report.records[0])(
+        **{**report.records[0].__dict__, "gps_altitude_m": None, "absolute_altitude_m": None}
+    )
+    with pytest.raises(PhotoError, match=r"photos.origin=\[47.398123,8.546123,0.0\]"):
+        takeoff_origin([bare])
