@@ -197,6 +197,17 @@ def photo_reconstruct_config(
         else:
             mapping[key] = bool(value)
             refine[key] = {"value": mapping[key], "source": f"yours (reconstruct.sfm.mapping.{key})"}
+    if camera["model"] == "SIMPLE_RADIAL" and not mapping["refine_extra_params"]:
+        # k held at 0 is a pinhole (and COLMAP's undistorter keeps a zero-k SIMPLE_RADIAL as it is,
+        # which the dense stage does not take).
+        f, cx, cy, _ = camera["params"]
+        camera = {
+            **camera,
+            "model": "PINHOLE",
+            "params": [f, f, cx, cy],
+            "why": f"EXIF focal length ({f:.1f} px), no DJI calibration in the XMP: SIMPLE_RADIAL held "
+            "with the camera is a pinhole (k = 0)",
+        }
     if not camera["refinable"] and not allowed:
         refine["why"] = f"{camera['why']}; {why}"
     elif not camera["refinable"]:

@@ -20,7 +20,9 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +34,8 @@ from scene.io import write_json_atomic
 
 log = logging.getLogger("plan_photos")
 
+# A ground further than this fraction of the photos' height from the take-off height is reported.
+DEPTH_CHECK_FRACTION = 0.05
 MISSION_FILES = {"qgc": "mission.plan", "litchi": "mission.csv", "wpml": "mission.kmz"}
 
 
@@ -126,6 +130,17 @@ def plan_from_photos(cfg: DictConfig, run_dir: Path) -> dict:
     )
     ground = _ground_height(Path(recon["sparse_dir"]), Path(recon["dense_ply"]))
     ground_record = {"ground_z_m": round(ground, 3)}
+    photo_height = float(np.median(local_viewpoints(report.records, origin)[:, 2]))
+    if height_known and abs(ground) > DEPTH_CHECK_FRACTION * max(photo_height, 1.0):
+        # With the camera held, the focal length sets the scene's depth below the fixed centres: a
+        # ground this far from the take-off height says the focal length may be off by about as much
+        # (or the take-off point was not on the ground under the flight).
+        ground_record["depth_check"] = (
+            f"the ground under the flight lies {ground:+.1f} m from the take-off height, "
+            f"{100 * abs(ground) / photo_height:.0f} % of the photos' {photo_height:.0f} m: the camera's "
+            "focal length may be off by about as much, or the take-off point was not on this ground"
+        )
+        log.warning("depth check: %s", ground_record["depth_check"])
     if not height_known:
         # No take-off height in the photos: z = 0 (and the ceiling) on the ground under the flight.
         from pipeline.photos import ground_origin
@@ -293,7 +308,8 @@ def _reconstruct_with_gate(image_dir, run_dir, recon_cfg, seed, roi, photos_cfg,
         cfg_try["sfm"]["mapping"]["method"] = method
         out = run_dir / ("recon" if attempt == 0 else f"recon_{method}")
         try:
-            mesh, recon = build_proxy(image_dir, out, cfg_try, seed, roi=roi, sparse_check=gate)
+            with progress("reconstruction"):
+                mesh, recon = build_proxy(image_dir, out, cfg_try, seed, roi=roi, sparse_check=gate)
         except ReconstructionError as exc:
             if exc.record.get("stage") != "sanity":
                 raise
@@ -362,6 +378,39 @@ def gate_refusal(
         f"no model fit to plan on (with both mappers): {failure}; check the photos' GNSS tags, "
         f"or give {fix} {why}"
     )
+
+
+@contextmanager
+def progress(what: str, every_s: float = 20.0):
+    """Log every ``every_s`` seconds how long ``what`` has run and the stage it last reported (the
+    reconstruction's stages log when they start and end; extraction and matching run minutes
+    without a word)."""
+    last = {"message": "starting"}
+
+    class Latest(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            last["message"] = record.getMessage()[:100]
+
+    handler = Latest(logging.INFO)
+    watched = [logging.getLogger(name) for name in ("reconstruct", "pipeline")]
+    for logger in watched:
+        logger.addHandler(handler)
+    done = threading.Event()
+    start = time.perf_counter()
+
+    def beat() -> None:
+        while not done.wait(every_s):
+            log.info("%s: %.0f s so far (last: %s)", what, time.perf_counter() - start, last["message"])
+
+    thread = threading.Thread(target=beat, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        thread.join()
+        for logger in watched:
+            logger.removeHandler(handler)
 
 
 def _photo_proxy(run_dir: Path, recon_dir: Path, image_dir: Path, shift_z: float):

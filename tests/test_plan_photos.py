@@ -64,3 +64,42 @@ def test_twenty_photos_of_a_plane_give_a_proxy_at_z0_and_missions(ground_photos,
     assert abs(float(np.median(proxy.vertices[:, 2]))) < 0.05  # the ground plane ends at z = 0
     for name in ("mission.plan", "mission.csv", "mission.kmz"):
         assert list((run_dir / "missions").glob(name.replace(".", "*."))), name
+
+
+SHARED_FLIGHT = ROOT.parent / "shared" / "data" / "photos" / "brighton_beach"
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not SHARED_FLIGHT.is_dir(), reason="the shared Phantom 3 flight is not here")
+def test_the_shared_phantom_3_flight_plans_as_documented_with_nothing_else_typed(tmp_path):
+    """``uavplan plan-photos ../shared/data/photos/brighton_beach planner=ours``: a consumer DJI
+    Phantom 3, 18 nadir photos, no RTK: registered, within 120 m of take-off, three missions, a PNG."""
+    run_dir = tmp_path / "run"
+    out = subprocess.run(
+        [
+            str(Path(sys.executable).parent / "uavplan"),
+            "plan-photos",
+            str(SHARED_FLIGHT),
+            "planner=ours",
+            f"hydra.run.dir={run_dir}",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=1800,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    report = json.loads((run_dir / "report.json").read_text())
+    assert report["settings_used"]["gnss"]["name"] == "consumer"
+    assert report["settings_used"]["gnss"]["sigma_m"] == 2.0
+    assert report["registration"]["n_registered"] >= 17
+    assert report["registration"]["gnss_residual_median_m"] < 6.0  # the gate: 3 x 2 m
+    assert report["origin"]["height_m"] == pytest.approx(
+        158.5, abs=0.1
+    )  # AbsoluteAltitude - RelativeAltitude
+    heights = np.loadtxt(run_dir / "plan" / "viewpoints.csv", delimiter=",", skiprows=1, usecols=3)
+    assert heights.max() <= 120.0 + 1e-6 and heights.min() >= 2.0 - 1e-6
+    assert report["waypoints"]["height_max_m"] <= 120.0
+    for name in ("mission.plan", "mission.csv", "mission.kmz"):
+        assert list((run_dir / "missions").glob(name.replace(".", "*."))), name
+    assert (run_dir / "flight.png").stat().st_size > 10_000
