@@ -45,6 +45,7 @@ from experiments.runs import (  # noqa: E402
     scene_sort_key,
 )
 from experiments.tables import latex_escape  # noqa: E402
+from pipeline.protocol import PROTOCOL
 from planner.budget import DEFAULT_LEVEL, level_rank  # noqa: E402
 from scene.io import write_atomic, write_text_atomic  # noqa: E402
 
@@ -513,12 +514,15 @@ def to_latex(table: pd.DataFrame, targets_pct=DEFAULT_TARGETS_PCT, at_images=DEF
 
 def headline_markdown(points: pd.DataFrame) -> str:
     """The README's headline table: one row per scene and planner, each column's values per budget
-    (fewest images first, ``a / b / c``), means over seeds; ``Seeds`` counts them per budget."""
+    (fewest images first, ``a / b / c``), means over seeds; ``Seeds`` counts them per budget. Its
+    first line names the protocol and the number of cells."""
 
     def per_budget(group: pd.DataFrame, column: str, scale: float, decimals: int) -> str:
         return " / ".join(_value_cell(v * scale, decimals) for v in group[column])
 
     lines = [
+        f"Protocol {PROTOCOL} ([results/protocol.md](results/protocol.md)), {int(points['n'].sum())} cells:",
+        "",
         "| Scene | Planner | Budgets | Seeds | Images | Completeness 5 cm (%) | acc90 (cm) | Flight (min) |",
         "| :-- | :-- | :-- | :-- | :-- | :-- | :-- | :-- |",
     ]
