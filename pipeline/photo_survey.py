@@ -364,16 +364,19 @@ def gate_refusal(
     """The sanity gate's refusal, one line: what failed with both mappers and the setting that would
     let such a model through, typed as it runs (a GNSS class that was wrong, or an attitude the
     gimbal did not log truly); a setting to use only when the photos' tags are known to be so."""
+    fixes, whys = [], []
     if residual_m is not None and residual_m > max_sigmas * sigma_m:
-        sigma = math.ceil(residual_m / max_sigmas * 10.0) / 10.0
-        fix = f"reconstruct.gnss.sigma_m={sigma:.1f}"
-        why = "if the photos' GNSS is that poor"
-    elif rotation_deg is not None and rotation_deg > max_rotation_deg:
-        fix = f"photos.max_rotation_deg={math.ceil(rotation_deg + 1.0):.0f}"
-        why = "if the gimbal's logged attitude is known to be that far off"
-    else:
-        fix = "photos.camera=exif"
-        why = "to start from the EXIF camera"
+        fixes.append(f"reconstruct.gnss.sigma_m={math.ceil(residual_m / max_sigmas * 10.0) / 10.0:.1f}")
+        whys.append("the photos' GNSS is that poor")
+    if rotation_deg is not None and rotation_deg > max_rotation_deg:
+        fixes.append(f"photos.max_rotation_deg={math.ceil(rotation_deg + 1.0):.0f}")
+        whys.append("the gimbal's logged attitude is that far off")
+    if not fixes:
+        fixes, whys = ["photos.camera=exif"], ["to start from the EXIF camera"]
+    fix, why = (
+        " ".join(fixes),
+        "if " + " and ".join(whys) if whys[0] != "to start from the EXIF camera" else whys[0],
+    )
     return (
         f"no model fit to plan on (with both mappers): {failure}; check the photos' GNSS tags, "
         f"or give {fix} {why}"

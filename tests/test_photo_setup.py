@@ -381,8 +381,9 @@ def test_a_mission_past_a_controllers_cap_splits_and_reads_back(tmp_path):
 
 
 def fixes_in(message: str) -> list[str]:
-    """The settings a refusal tells the user to type (after "typed", "give" or "point,")."""
-    return re.findall(r"(?:typed|give|point,) ((?:photos|reconstruct)\.[\w.]+=[^\s;]+)", message)
+    """The settings a refusal tells the user to type: ``key=value`` words (a bad value the message
+    echoes is quoted, ``key='value':``, and is not one)."""
+    return re.findall(r"(?<=\s)((?:photos|reconstruct)\.[\w.]+=[^\s;:']+)(?=\s|$)", message)
 
 
 def test_every_refusals_fix_runs_as_printed(tmp_path):
@@ -410,8 +411,10 @@ def test_every_refusals_fix_runs_as_printed(tmp_path):
     from pipeline.photo_survey import gate_refusal
 
     messages.append(gate_refusal("camera centres a median 17.60 m from their GNSS fixes", 17.6, 2.0, 3.0))
+    messages.append(gate_refusal("centres 18.12 m off; turned 6.2 deg", 18.12, 2.0, 3.0, 6.2, 5.0))
     fixes = [fix for message in messages for fix in fixes_in(message)]
-    assert len(fixes) == len(messages), (fixes, messages)
+    assert [len(fixes_in(m)) for m in messages] == [1, 1, 1, 1, 1, 1, 2], (fixes, messages)
+    assert fixes[-2:] == ["reconstruct.gnss.sigma_m=6.1", "photos.max_rotation_deg=8"]
     for fix in fixes:
         cfg = compose_photos(fix)  # Hydra takes it as typed
         key, _, _ = fix.partition("=")
@@ -424,5 +427,7 @@ def test_every_refusals_fix_runs_as_printed(tmp_path):
             site_box(value, parse_origin([46.8, -91.9, 158.5]))
         elif key == "reconstruct.gnss.sigma_m":
             assert float(value) > 0
+        elif key == "photos.max_rotation_deg":
+            assert float(value) > 5
         else:
             assert key == "photos.camera" and value in ("auto", "xmp", "exif")
