@@ -223,21 +223,29 @@ def sanity_failures(
     max_residual_sigmas: float,
     max_rotation_deg: float,
     attitude_logged: bool = True,
+    min_residual_limit_m: float = 0.0,
 ) -> list[str]:
     """Why an aligned model is not to be planned on (empty: it passes the gate).
 
     ``record``: the reconstruction's record (``position_error_median_m``: the aligned centres
     against their own GNSS fixes; ``rotation_error_median_deg``: against the gimbal's attitude).
+    The residual limit is ``max_residual_sigmas`` x ``sigma_m``, at least ``min_residual_limit_m``
+    (an RTK fix's logged deviations leave out the antenna-to-camera offset and the shutter's timing).
     """
     failures = []
     residual = record.get("position_error_median_m")
-    limit = float(max_residual_sigmas) * float(sigma_m)
+    limit = max(float(max_residual_sigmas) * float(sigma_m), float(min_residual_limit_m))
     if residual is None or not math.isfinite(float(residual)):
         failures.append("no camera could be compared with its GNSS fix")
     elif float(residual) > limit:
         failures.append(
             f"camera centres a median {float(residual):.2f} m from their GNSS fixes, more than "
             f"photos.max_residual_sigmas = {max_residual_sigmas:g} x {sigma_m:g} m"
+            + (
+                f" (at least photos.min_residual_limit_m = {min_residual_limit_m:g} m)"
+                if limit > float(max_residual_sigmas) * float(sigma_m)
+                else ""
+            )
         )
     rotation = record.get("rotation_error_median_deg")
     if attitude_logged and rotation is not None and float(rotation) > float(max_rotation_deg):

@@ -162,18 +162,19 @@ def plan_from_photos(cfg: DictConfig, run_dir: Path) -> dict:
     proxy = _photo_proxy(
         run_dir, Path(recon["sparse_dir"]).parent, image_dir, 0.0 if height_known else ground
     )
-    plan, plan_record = plan_stage(
-        proxy,
-        intrinsics,
-        str(cfg.planner._target_),
-        params,
-        seed,
-        drone,
-        evaluation,
-        float(cfg.survey.target_gsd_m),
-        run_dir / "plan",
-        str(cfg.survey.get("flight_order", "planner")),
-    )
+    with progress("planning"):
+        plan, plan_record = plan_stage(
+            proxy,
+            intrinsics,
+            str(cfg.planner._target_),
+            params,
+            seed,
+            drone,
+            evaluation,
+            float(cfg.survey.target_gsd_m),
+            run_dir / "plan",
+            str(cfg.survey.get("flight_order", "planner")),
+        )
     missions = {}
     for fmt, name in MISSION_FILES.items():
         _, paths = export_mission(
@@ -297,6 +298,7 @@ def _reconstruct_with_gate(image_dir, run_dir, recon_cfg, seed, roi, photos_cfg,
             float(photos_cfg["max_residual_sigmas"]),
             float(photos_cfg["max_rotation_deg"]),
             attitude_logged,
+            float(photos_cfg["min_residual_limit_m"]),
         )
         if failures:
             raise ReconstructionError("; ".join(failures), {"stage": "sanity"})
@@ -395,7 +397,7 @@ def progress(what: str, every_s: float = 20.0):
             last["message"] = record.getMessage()[:100]
 
     handler = Latest(logging.INFO)
-    watched = [logging.getLogger(name) for name in ("reconstruct", "pipeline")]
+    watched = [logging.getLogger(name) for name in ("reconstruct", "pipeline", "planner", "run")]
     for logger in watched:
         logger.addHandler(handler)
     done = threading.Event()

@@ -431,3 +431,12 @@ def test_every_refusals_fix_runs_as_printed(tmp_path):
             assert float(value) > 5
         else:
             assert key == "photos.camera" and value in ("auto", "xmp", "exif")
+
+
+def test_an_rtk_flight_is_allowed_the_residual_floor():
+    record = {"position_error_median_m": 0.09, "rotation_error_median_deg": 1.0}
+    (failure,) = sanity_failures(record, 0.02, 3.0, 5.0)  # 9 cm > 3 x 2 cm
+    assert "more than photos.max_residual_sigmas = 3 x 0.02 m" in failure
+    assert sanity_failures(record, 0.02, 3.0, 5.0, min_residual_limit_m=0.15) == []
+    (failure,) = sanity_failures({**record, "position_error_median_m": 0.4}, 0.02, 3.0, 5.0, True, 0.15)
+    assert "at least photos.min_residual_limit_m = 0.15 m" in failure
