@@ -57,12 +57,24 @@ def plan_photos_main(cfg: DictConfig) -> None:
         sys.exit(1)
 
 
-def _plan_photos(argv: Sequence[str]) -> int:
-    # ``uavplan plan-photos IMAGES_DIR [overrides]``: the folder is the first word without a '='.
+def photo_overrides(argv: Sequence[str]) -> list[str]:
+    """``uavplan plan-photos IMAGES_DIR [overrides]`` as Hydra overrides: the folder is the first
+    word without a '='; ``photos.origin=LAT,LON,HEIGHT`` and ``photos.roi=S,W,N,E`` typed with bare
+    commas (as the docs once printed them, and Hydra reads as a sweep and refuses) become the lists
+    they mean."""
     argv = list(argv)
     if argv and "=" not in argv[0] and not argv[0].startswith("-"):
         argv[0] = f"photos.dir={argv[0]}"
-    sys.argv = ["uavplan plan-photos", *argv]
+    for i, arg in enumerate(argv):
+        key, sep, value = arg.partition("=")
+        if sep and key.lstrip("+~") in ("photos.origin", "photos.roi") and "," in value:
+            if value[:1] not in "[\"'":
+                argv[i] = f"{key}=[{value}]"
+    return argv
+
+
+def _plan_photos(argv: Sequence[str]) -> int:
+    sys.argv = ["uavplan plan-photos", *photo_overrides(argv)]
     plan_photos_main()
     return 0
 

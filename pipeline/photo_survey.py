@@ -79,6 +79,8 @@ def plan_from_photos(cfg: DictConfig, run_dir: Path) -> dict:
         evaluation = EvaluationSettings.from_config(cfg.evaluate)
         drone = DroneSettings.from_config(plain(cfg.drone))
         given_origin = parse_origin(photos_cfg["origin"]) if photos_cfg.get("origin") is not None else None
+        if photos_cfg.get("roi") is not None:  # its form, before any photo is read
+            site_box(photos_cfg["roi"], given_origin or parse_origin([0.0, 0.0, 0.0]))
     except ValueError as exc:
         raise SettingsError(str(exc)) from exc
 

@@ -440,3 +440,23 @@ def test_an_rtk_flight_is_allowed_the_residual_floor():
     assert sanity_failures(record, 0.02, 3.0, 5.0, min_residual_limit_m=0.15) == []
     (failure,) = sanity_failures({**record, "position_error_median_m": 0.4}, 0.02, 3.0, 5.0, True, 0.15)
     assert "at least photos.min_residual_limit_m = 0.15 m" in failure
+
+
+def test_origin_and_site_typed_with_bare_commas_become_lists_hydra_takes():
+    from pipeline.cli import photo_overrides
+
+    argv = photo_overrides(
+        ["/data/f", "photos.origin=46.8,-91.9,158.5", "photos.roi=1,2,3,4", "planner=ours"]
+    )
+    assert argv == [
+        "photos.dir=/data/f",
+        "photos.origin=[46.8,-91.9,158.5]",
+        "photos.roi=[1,2,3,4]",
+        "planner=ours",
+    ]
+    assert photo_overrides(["photos.origin=[1,2,3]", "photos.roi='1,2,3,4'"]) == [
+        "photos.origin=[1,2,3]",
+        "photos.roi='1,2,3,4'",
+    ]
+    cfg = compose_photos(*argv[1:3])
+    assert parse_origin(cfg.photos.origin).height_m == 158.5
