@@ -316,7 +316,7 @@ def _reconstruct_with_gate(image_dir, run_dir, recon_cfg, seed, roi, photos_cfg,
                 mesh, recon = build_proxy(image_dir, out, cfg_try, seed, roi=roi, sparse_check=gate)
         except ReconstructionError as exc:
             if exc.record.get("stage") != "sanity":
-                raise
+                raise registration_refusal(exc, recon_cfg) from exc
             tries.append(
                 {
                     "mapping": method,
@@ -355,6 +355,23 @@ def _reconstruct_with_gate(image_dir, run_dir, recon_cfg, seed, roi, photos_cfg,
             float(photos_cfg["max_rotation_deg"]),
         )
     )
+
+
+def registration_refusal(exc, recon_cfg: dict) -> Exception:
+    """A reconstruction that registered too few photos, refused in one line with the setting that
+    would take what it registered (typed as it runs); any other failure as it was."""
+    from pipeline.photos import PhotoError
+
+    fraction = exc.record.get("registered_fraction")
+    if fraction is None or exc.record.get("stage") not in ("mapping", "align", "proxy") or fraction <= 0:
+        return exc
+    floor = math.floor(float(fraction) * 100.0) / 100.0
+    sigma = float(recon_cfg["gnss"]["sigma_m"])
+    hint = "; if the photos' GNSS is consumer grade, give reconstruct.gnss.sigma_m=2.0" if sigma < 1.0 else ""
+    fix = f"reconstruct.proxy.min_registered_fraction={floor:.2f}"
+    if exc.record.get("stage") != "proxy":
+        fix = f"reconstruct.min_registered_fraction={floor:.2f} {fix}"
+    return PhotoError(f"{exc}{hint}; to plan on the part registered, give {fix}")
 
 
 def gate_refusal(

@@ -40,6 +40,8 @@ DJI_XMP_NAMESPACE = ("http://www.dji.com/drone-dji/1.0/", "drone-dji")
 FULL_FRAME_DIAGONAL_MM = math.hypot(36.0, 24.0)
 # EXIF FocalPlaneResolutionUnit: 2 inch, 3 centimetre, 4 millimetre.
 FOCAL_PLANE_UNIT_MM = {"2": 25.4, "3": 10.0, "4": 1.0}
+# Fewer photos than this cannot make a model at all (no fix is offered below it).
+MIN_PHOTOS_FLOOR = 3
 # Where the camera's attitude is not logged the photo is taken as a nadir view.
 NADIR_PITCH_DEG = -90.0
 
@@ -271,6 +273,11 @@ def read_photos(folder: Path, min_photos: int = 3) -> PhotoReport:
         raise PhotoError(
             f"{folder}: {len(report.records)} of {len(paths)} photos usable, at least {min_photos} needed "
             f"({'; '.join(f'{n}: {r}' for n, r in list(report.left_out.items())[:3])})"
+            + (
+                f"; to try with fewer, give photos.min_photos={len(report.records)}"
+                if len(report.records) >= MIN_PHOTOS_FLOOR
+                else ""
+            )
         )
     cameras: dict[tuple, list[str]] = {}
     for r in report.records:

@@ -383,7 +383,7 @@ def test_a_mission_past_a_controllers_cap_splits_and_reads_back(tmp_path):
 def fixes_in(message: str) -> list[str]:
     """The settings a refusal tells the user to type: ``key=value`` words (a bad value the message
     echoes is quoted, ``key='value':``, and is not one)."""
-    return re.findall(r"(?<=\s)((?:photos|reconstruct)\.[\w.]+=[^\s;:']+)(?=\s|$)", message)
+    return re.findall(r"(?<=\s)((?:photos|reconstruct)\.[\w.]+=[^\s;:']+)(?=[\s;]|$)", message)
 
 
 def test_every_refusals_fix_runs_as_printed(tmp_path):
@@ -460,3 +460,44 @@ def test_origin_and_site_typed_with_bare_commas_become_lists_hydra_takes():
     ]
     cfg = compose_photos(*argv[1:3])
     assert parse_origin(cfg.photos.origin).height_m == 158.5
+
+
+def test_too_few_photos_registered_is_refused_with_the_settings_that_take_them():
+    from pipeline.photo_survey import registration_refusal
+    from reconstruct.errors import ReconstructionError
+
+    exc = ReconstructionError(
+        "exploratory flight registered 66.7% < reconstruct.proxy.min_registered_fraction 90%",
+        {"stage": "proxy", "registered_fraction": 12 / 18},
+    )
+    message = str(registration_refusal(exc, {"gnss": {"sigma_m": 0.05}}))
+    assert fixes_in(message) == [
+        "reconstruct.gnss.sigma_m=2.0",
+        "reconstruct.proxy.min_registered_fraction=0.66",
+    ]
+    mapping = ReconstructionError("only 3 of 18", {"stage": "mapping", "registered_fraction": 3 / 18})
+    message = str(registration_refusal(mapping, {"gnss": {"sigma_m": 2.0}}))
+    assert fixes_in(message) == [
+        "reconstruct.min_registered_fraction=0.16",
+        "reconstruct.proxy.min_registered_fraction=0.16",
+    ]
+    for fix in fixes_in(message):
+        key, _, value = fix.partition("=")
+        cfg = compose_photos(fix)
+        assert float(
+            cfg.reconstruct[key.split(".")[-1]]
+            if key.count(".") == 1
+            else cfg.reconstruct.proxy["min_registered_fraction"]
+        ) == float(value)
+    other = ReconstructionError("dense reconstruction produced no points", {"stage": "dense"})
+    assert registration_refusal(other, {"gnss": {"sigma_m": 2.0}}) is other
+
+
+def test_too_few_photos_offer_the_count_there_is(tmp_path):
+    for i in range(4):
+        dji_photo(tmp_path, f"{i}.JPG", lat=46.8426 + i * 1e-4)
+    with pytest.raises(PhotoError) as info:
+        read_photos(tmp_path, min_photos=10)
+    (fix,) = fixes_in(str(info.value))
+    assert fix == "photos.min_photos=4" and compose_photos(fix).photos.min_photos == 4
+    assert len(read_photos(tmp_path, min_photos=compose_photos(fix).photos.min_photos).records) == 4
