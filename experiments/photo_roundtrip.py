@@ -194,6 +194,162 @@ def read_back_waypoints(run_dir: Path, origin) -> dict[str, np.ndarray]:
     return out
 
 
+def radial_warp(rgb: np.ndarray, k1: float, focal_px: float) -> np.ndarray:
+    """``rgb`` (a pinhole rendering, principal point at the centre) as a lens with radial distortion
+    ``k1`` would have taken it (COLMAP's SIMPLE_RADIAL: x_d = x_u (1 + k1 |x_u|^2) on normalised
+    coordinates); pixels whose ray falls outside the rendering are black."""
+    import cv2
+
+    h, w = rgb.shape[:2]
+    cx, cy = w / 2.0, h / 2.0
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    xd, yd = (xs + 0.5 - cx) / focal_px, (ys + 0.5 - cy) / focal_px
+    xu, yu = xd.copy(), yd.copy()
+    for _ in range(20):  # x_u = x_d / (1 + k1 r_u^2), a contraction for |k1| r^2 << 1
+        factor = 1.0 + k1 * (xu * xu + yu * yu)
+        xu, yu = xd / factor, yd / factor
+    map_x = (xu * focal_px + cx - 0.5).astype(np.float32)
+    map_y = (yu * focal_px + cy - 0.5).astype(np.float32)
+    return cv2.remap(rgb, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+
+
+def strip_xmp(folder: Path) -> None:
+    """Remove every photo's XMP (the DJI tags: RelativeAltitude, the gimbal's attitude) in place."""
+    import pyexiv2
+
+    for path in sorted(Path(folder).glob("*.JPG")):
+        with pyexiv2.Image(str(path)) as image:
+            image.clear_xmp()
+
+
+def _run_plan_photos(folder: Path, run_dir: Path, overrides: list[str]) -> tuple[int, float, float]:
+    """``uavplan plan-photos folder`` into ``run_dir``: (exit code, wall s, CPU s of the child)."""
+    import resource
+
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    start = time.perf_counter()
+    done = subprocess.run(
+        [
+            str(Path(sys.executable).parent / "uavplan"),
+            "plan-photos",
+            str(folder),
+            f"hydra.run.dir={run_dir}",
+            *overrides,
+        ],
+        cwd=ROOT,
+    )
+    wall = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return done.returncode, wall, cpu
+
+
+def truth_errors(run_dir: Path, truth_dir: Path) -> dict:
+    """The run's aligned cameras against the rendered flight's true poses (same local frame: the run
+    was given the survey origin): centre distance (m) and rotation angle (deg), median and p90."""
+    import pycolmap
+
+    from reconstruct.align import rotation_angles_deg
+    from scene.cameras_file import read_cameras
+
+    report = json.loads((run_dir / "report.json").read_text())
+    tries = report["sanity"]["tries"]
+    recon_dir = run_dir / "recon" if len(tries) == 1 else run_dir / f"recon_{tries[-1]['mapping']}"
+    truth = read_cameras(truth_dir)
+    index = {Path(n).stem: i for i, n in enumerate(truth.names)}
+    rec = pycolmap.Reconstruction(str(recon_dir / "sparse"))
+    centre_err, rot_est, rot_true = [], [], []
+    for image_id in rec.reg_image_ids():
+        image = rec.image(image_id)
+        i = index[Path(image.name).stem]
+        true_centre = -truth.rotations[i].T @ truth.translations[i]
+        centre_err.append(float(np.linalg.norm(image.projection_center() - true_centre)))
+        rot_est.append(image.cam_from_world().rotation.matrix())
+        rot_true.append(truth.rotations[i])
+    rotation = rotation_angles_deg(np.asarray(rot_est), np.asarray(rot_true))
+    camera = next(iter(rec.cameras.values()))
+    return {
+        "centre_error_median_m": float(np.median(centre_err)),
+        "centre_error_p90_m": float(np.percentile(centre_err, 90)),
+        "rotation_error_median_deg": float(np.median(rotation)),
+        "rotation_error_p90_deg": float(np.percentile(rotation, 90)),
+        "camera_model": str(camera.model),
+        "camera_params": [float(v) for v in camera.params],
+    }
+
+
+def lens_roundtrip(args, cfg, origin) -> dict:
+    """A rendered flight written as a real drone's photos (issue 69's target): ``--views`` of the
+    entry's exploratory views rendered at ``--render-size``, warped with radial distortion ``--k1``
+    after rendering, consumer GNSS noise, EXIF + XMP; ``plan-photos`` on them with the survey origin
+    (cameras against the truth), then on the same photos with their XMP removed and nothing typed."""
+    from render import render_flight
+    from scene.camera import Intrinsics
+    from scene.cameras_file import read_cameras
+    from scene.registry import load_scene
+
+    width, height = (int(v) for v in args.render_size.lower().split("x"))
+    entry = read_cameras(args.entry / "images")
+    keep = np.unique(np.linspace(0, len(entry) - 1, min(args.views, len(entry))).round().astype(int))
+    scene = load_scene(cfg.scene, cache_dir=cfg.cache_dir)
+    intrinsics = Intrinsics(width, height, float(cfg.camera.hfov_deg))
+    render_dir = args.out / "render"
+    start = time.perf_counter()
+    render_flight(scene, entry.viewpoints[keep], intrinsics, render_dir, cfg.render)
+    render_s = time.perf_counter() - start
+    if args.k1:
+        from PIL import Image
+
+        for name in read_cameras(render_dir).names:
+            with Image.open(render_dir / name) as image:
+                rgb = np.asarray(image.convert("RGB"))
+            Image.fromarray(radial_warp(rgb, args.k1, intrinsics.focal_px)).save(render_dir / name)
+    folder = photos_from_flight(render_dir, args.out / "photos", origin, args.gnss_sigma, args.seed)
+    origin_text = f"{origin.latitude_deg},{origin.longitude_deg},{origin.height_m}"
+    box = scene.structure_bounds
+    lat, lon, _ = origin.geodetic_from_local([box.lo, box.hi])
+    roi = f"photos.roi=[{min(lat)},{min(lon)},{max(lat)},{max(lon)}]"
+    code, wall, cpu = _run_plan_photos(
+        folder, args.out / "run", [f"photos.origin=[{origin_text}]", roi, *args.overrides]
+    )
+    result: dict = {
+        "views": int(len(keep)),
+        "render_size": [width, height],
+        "k1": args.k1,
+        "gnss_sigma_m": args.gnss_sigma,
+        "render_s": render_s,
+        "with_xmp": {"exit": code, "wall_s": wall, "cpu_s": cpu},
+    }
+    if code == 0:
+        report = json.loads((args.out / "run" / "report.json").read_text())
+        result["with_xmp"] |= {
+            "registered": report["registration"]["n_registered"],
+            "settings_used": {k: report["settings_used"][k] for k in ("gnss", "camera", "refine")},
+            "waypoint_height_max_m": report["waypoints"]["height_max_m"],
+            **truth_errors(args.out / "run", render_dir),
+        }
+    bare = args.out / "photos_no_xmp"
+    if bare.exists():
+        import shutil
+
+        shutil.rmtree(bare)
+    import shutil
+
+    shutil.copytree(folder, bare)
+    strip_xmp(bare)
+    code, wall, cpu = _run_plan_photos(bare, args.out / "run_no_xmp", list(args.overrides))
+    result["without_xmp"] = {"exit": code, "wall_s": wall, "cpu_s": cpu}
+    if code == 0:
+        report = json.loads((args.out / "run_no_xmp" / "report.json").read_text())
+        result["without_xmp"] |= {
+            "registered": report["registration"]["n_registered"],
+            "ground": report["ground"],
+            "waypoint_height_min_m": report["waypoints"]["height_min_m"],
+            "waypoint_height_max_m": report["waypoints"]["height_max_m"],
+        }
+    return result
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     from pipeline.proxy import load_proxy
 
@@ -202,6 +358,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--gnss-sigma", type=float, default=0.02, help="GNSS noise per axis (m)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--render-size",
+        default=None,
+        help="WxH: re-render the entry's views at this size as a real drone's photos (with --k1, "
+        "--views; the lens round trip, issue 69) instead of comparing with the simulated proxy",
+    )
+    parser.add_argument("--k1", type=float, default=0.0, help="radial distortion applied after rendering")
+    parser.add_argument("--views", type=int, default=100, help="views of the entry to render (evenly spaced)")
     argv = list(sys.argv[1:] if argv is None else argv)
     overrides = argv[argv.index("--") + 1 :] if "--" in argv else []
     argv = argv[: argv.index("--")] if "--" in argv else argv
@@ -219,6 +383,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base=None):
         cfg = compose(config_name="config", overrides=list(args.overrides))
     origin = SurveyOrigin.from_config(plain(cfg.survey.origin))
+    if args.render_size:
+        result = lens_roundtrip(args, cfg, origin)
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "lens_roundtrip.json").write_text(json.dumps(result, indent=1, default=float))
+        print(json.dumps(result, indent=1, default=float))
+        return 0
     folder = photos_from_flight(
         args.entry / "images", args.out / "photos", origin, args.gnss_sigma, args.seed
     )

@@ -1,13 +1,14 @@
 """Every plan within the drone's heights by construction: the shared step between a planner and the
 plan check (``pipeline.cell.plan_stage``), whoever planned.
 
-A view above ``drone.ceiling_m`` (heights above the take-off point, z = 0 of the local frame) is
-moved straight down to the ceiling, one below ``drone.min_height_m`` straight up to the floor, each
-keeping its look direction; a moved view that then comes closer to the proxy than
-``drone.min_clearance_m`` or sits inside a closed volume of it is dropped. A plan whose views all
-lie within the heights comes back as it is (the same object): the simulated study's plans, whose
-views stay far below 120 m, are not touched. What was moved and dropped is returned for the record
-(``plan.json``'s ``envelope``), with the forecast of the plan before the step beside it.
+A view above ``drone.ceiling_m`` less ``CEILING_MARGIN_M`` (heights above the take-off point,
+z = 0 of the local frame) is moved straight down to that height, one below ``drone.min_height_m``
+straight up to the floor, each keeping its look direction; a moved view that then comes closer
+to the proxy than ``drone.min_clearance_m`` or sits inside a closed volume of it is dropped. A
+plan whose views all lie within the heights comes back as it is (the same object): the simulated
+study's plans, whose views stay far below 120 m, are not touched. What was moved and dropped is
+returned for the record (``plan.json``'s ``envelope``), with the forecast of the plan before the
+step beside it.
 """
 
 from __future__ import annotations
@@ -19,6 +20,11 @@ import trimesh
 from drone.model import DroneSettings
 from scene.enclosure import enclosed_positions, raycasting_scene
 from scene.plan import Plan, PlanningError
+
+# A moved view stays this far (m) below the ceiling: a mission's heights are ellipsoidal
+# (mission.model), and the Earth's curvature lifts a waypoint d m from take-off by d^2 / 2R above the
+# local plane: 8 cm at 1 km, 0.5 m at 2.5 km; a view at the ceiling itself would read 120.001 m.
+CEILING_MARGIN_M = 0.5
 
 
 def keep_within_heights(
@@ -35,13 +41,14 @@ def keep_within_heights(
     """
     vps = np.asarray(plan.viewpoints, dtype=float)
     height = vps[:, 2] - float(takeoff_z)
+    top = drone.ceiling_m - min(CEILING_MARGIN_M, 0.5 * (drone.ceiling_m - drone.min_height_m))
     with np.errstate(invalid="ignore"):
-        high = height > drone.ceiling_m
+        high = height > top
         low = height < drone.min_height_m
     if not (high | low).any():
         return plan, None
     moved = vps.copy()
-    moved[high, 2] = float(takeoff_z) + drone.ceiling_m
+    moved[high, 2] = float(takeoff_z) + top
     moved[low, 2] = float(takeoff_z) + drone.min_height_m
     changed = np.flatnonzero(high | low)
     scene = raycasting_scene(proxy)
@@ -58,6 +65,7 @@ def keep_within_heights(
     shift = np.abs(moved[:, 2] - vps[:, 2])
     record = {
         "ceiling_m": drone.ceiling_m,
+        "moved_to_m": top,
         "floor_m": drone.min_height_m,
         "n_before": len(vps),
         "n_moved_down": int((high & keep).sum()),

@@ -309,8 +309,9 @@ def test_views_above_the_ceiling_move_down_and_below_the_floor_move_up(tmp_path)
     plan = Plan(vps, ["a", "b", "c", "d"], "test")
     bounded, record = keep_within_heights(plan, ground_proxy(), drone)
     assert record["n_moved_down"] == 2 and record["n_moved_up"] == 1 and record["n_dropped"] == 0
-    assert bounded.viewpoints[:, 2].tolist() == [66.4, 120.0, 120.0, 2.0]
-    assert record["max_move_m"] == pytest.approx(48.2)
+    # Down to 0.5 m under the ceiling (the curvature a mission's ellipsoidal heights add), up to the floor.
+    assert bounded.viewpoints[:, 2].tolist() == [66.4, 119.5, 119.5, 2.0]
+    assert record["max_move_m"] == pytest.approx(48.7)
     assert bounded.info["envelope"] == record
     # A plan within the heights is the same object: nothing of the simulated study moves.
     inside = Plan(vps[:1], ["a"], "test")
