@@ -512,6 +512,10 @@ def to_latex(table: pd.DataFrame, targets_pct=DEFAULT_TARGETS_PCT, at_images=DEF
     return "\n".join(lines) + "\n"
 
 
+def _cells(n: int) -> str:
+    return f"{n} cell" + ("" if n == 1 else "s")
+
+
 def headline_markdown(points: pd.DataFrame) -> str:
     """The README's headline table: one row per scene and planner, each column's values per budget
     (fewest images first, ``a / b / c``), means over seeds; ``Seeds`` counts them per budget. Its
@@ -520,8 +524,9 @@ def headline_markdown(points: pd.DataFrame) -> str:
     def per_budget(group: pd.DataFrame, column: str, scale: float, decimals: int) -> str:
         return " / ".join(_value_cell(v * scale, decimals) for v in group[column])
 
+    n_cells = _cells(int(points["n"].sum()))
     lines = [
-        f"Protocol {PROTOCOL} ([results/protocol.md](results/protocol.md)), {int(points['n'].sum())} cells:",
+        f"Protocol {PROTOCOL} ([results/protocol.md](results/protocol.md)), {n_cells}:",
         "",
         "| Scene | Planner | Budgets | Seeds | Images | Completeness 5 cm (%) | acc90 (cm) | Flight (min) |",
         "| :-- | :-- | :-- | :-- | :-- | :-- | :-- | :-- |",

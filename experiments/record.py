@@ -239,6 +239,8 @@ class QueueLimits:
         min_free_gb: no cell starts with less free disk than this where its run directory lies.
         prune: delete a cell's run directory once its record is kept (images, models, clouds).
         attempts: tries per cell (a failed one is recorded, then run again once).
+        margin: a cell starts only if ``margin`` x its estimate fits before the deadline (estimates
+            from another machine, or from cells that ran beside other work, run short).
     """
 
     deadline: float | None = None
@@ -247,6 +249,7 @@ class QueueLimits:
     min_free_gb: float = 20.0
     prune: bool = True
     attempts: int = 2
+    margin: float = 1.5
 
 
 def run_queue(
@@ -370,7 +373,10 @@ def run_queue(
                 cell, attempt = queue.popleft()
                 name, run_dir = name_of(cell), run_dir_of(cell)
                 estimate_h = (limits.estimates_h or {}).get(cell[:5], limits.default_estimate_h)
-                if limits.deadline is not None and time.time() + estimate_h * 3600.0 > limits.deadline:
+                if (
+                    limits.deadline is not None
+                    and time.time() + limits.margin * estimate_h * 3600 > limits.deadline
+                ):
                     left_min = max(limits.deadline - time.time(), 0.0) / 60.0
                     print(
                         f"{name}: estimated {estimate_h * 60:.0f} min, {left_min:.0f} min left before the "

@@ -174,6 +174,26 @@ def study_cost(runs: pd.DataFrame) -> list[str]:
     ]
 
 
+def study_progress() -> list[str]:
+    """The README's progress lines: per phase of the study plan, its cells, those recorded at the
+    current protocol and planner versions, and the cell-hours left (estimated from the records)."""
+    from experiments.study_plan import PAST_RECORDS, past_cell_hours, plan_table, recorded_specs, study_cells
+
+    cells = study_cells()
+    table = plan_table(cells, past_cell_hours(PAST_RECORDS), recorded_specs(STUDY_PRESET, cells))
+    return [
+        "**Progress.** The study plan's phases (`uavplan-study study-plan`; 1: the tomb's and church's",
+        "fronts at seed 0, 2: the cathedral, 3: the noise floor, 4: seeds 1 and 2, 5: the shared meshes,",
+        "6: the GSD axis, 7: Yan at the seed paper's scale); cell-hours left are estimated from the",
+        "records of the same scene, planner and budget, this study's first:",
+        "",
+        "| phase | cells | recorded | cell-hours left |",
+        "| --: | --: | --: | --: |",
+        *(f"| {r.phase} | {r.cells} | {r.recorded} | {r.hours_left:.1f} |" for r in table.itertuples()),
+        "",
+    ]
+
+
 def study_readme(study: str, runs: pd.DataFrame, n_left_out: int = 0) -> str:
     """The study folder's README: cells, protocol, code, machines, how to run and regenerate."""
     ok = runs[runs["status"] == "ok"]
@@ -205,6 +225,7 @@ def study_readme(study: str, runs: pd.DataFrame, n_left_out: int = 0) -> str:
         f"**Machines.** {_machines(runs)}.",
         "",
         *study_cost(runs),
+        *(study_progress() if study == STUDY_PRESET else []),
         "**Files.** `tables/tables.md` (Tables I and II at the default budget), `fronts.md` and",
         "`fronts_images.png` / `fronts_flight_time.png` (quality per image over every budget),",
         "`headline.md` (the top-level README's table, per budget), `cells.csv` (every cell's metrics.json).",

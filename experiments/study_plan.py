@@ -78,7 +78,7 @@ NOISE_CELLS = (("church", "ours"), ("church", "smith"))
 NOISE_REPEATS = 3
 # Where the cell-hours of a cell not run before are guessed from: this study's records, then those
 # of the studies before protocol 1 (archive/pre_p1/cells).
-PAST_RECORDS = (ROOT / "results" / "cells", ROOT / "archive" / "results_before_protocol1" / "cells")
+PAST_RECORDS = (ROOT / "results" / "cells", ROOT / "archive" / "pre_p1" / "cells")
 BUNDLE_HOURS = 0.2  # building and committing one scene's proxy (about 6-10 minutes on 2 cores)
 UNKNOWN_CELL_H = 0.75  # a cell no earlier record resembles (a mesh scene, a new level)
 
@@ -143,22 +143,30 @@ def study_cells() -> list[StudyCell]:
 
 
 def past_cell_hours(roots: Path | Sequence[Path]) -> pd.DataFrame:
-    """Median wall hours of earlier cells per (scene, planner, budget), from the records of each
-    study under ``roots`` (each study's cells its own samples)."""
-    runs = []
+    """Median wall hours of earlier cells per (scene, planner, budget), from the records under
+    ``roots``: a group's hours come from the first root that has a cell of it (this study's own
+    records before those of earlier studies)."""
     roots = [roots] if isinstance(roots, Path) else list(roots)
-    studies = [p for root in roots if Path(root).is_dir() for p in sorted(Path(root).iterdir()) if p.is_dir()]
-    for path in studies:
-        try:
-            runs += load_runs([path])
-        except RunDirectoryError:
+    frames = []
+    for rank, root in enumerate(roots):
+        runs = []
+        for path in sorted(p for p in Path(root).iterdir() if p.is_dir()) if Path(root).is_dir() else []:
+            try:
+                runs += load_runs([path])
+            except RunDirectoryError:
+                continue
+        if not runs:
             continue
-    if not runs:
+        frame = runs_frame(runs)
+        wall = frame.get("cell_wall_time_s", pd.Series(index=frame.index, dtype=float))
+        frame = frame[(frame["status"] == "ok") & wall.notna()]
+        frames.append(frame.assign(hours=frame["cell_wall_time_s"].astype(float) / 3600.0, rank=rank))
+    if not frames:
         return pd.DataFrame(columns=["scene", "planner", "budget", "hours"])
-    frame = runs_frame(runs)
-    frame = frame[(frame["status"] == "ok") & frame.get("cell_wall_time_s", pd.Series(dtype=float)).notna()]
-    frame = frame.assign(hours=frame["cell_wall_time_s"].astype(float) / 3600.0)
-    return frame.groupby(["scene", "planner", "budget"], as_index=False)["hours"].median()
+    frame = pd.concat(frames, ignore_index=True)
+    keys = ["scene", "planner", "budget"]
+    first = frame[frame["rank"] == frame.groupby(keys)["rank"].transform("min")]
+    return first.groupby(keys, as_index=False)["hours"].median()
 
 
 def estimate_hours(cell: StudyCell, past: pd.DataFrame) -> float:

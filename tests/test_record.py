@@ -249,7 +249,7 @@ def test_no_cell_starts_past_the_deadline_or_below_the_disk_floor(monkeypatch, t
     from experiments.record import QueueLimits
 
     cells = FakeCells(monkeypatch, tmp_path, ["ok"])
-    soon = QueueLimits(deadline=time.time() + 30 * 60, estimates_h={CELL: 0.75}, min_free_gb=0.0)
+    soon = QueueLimits(deadline=time.time() + 30 * 60, estimates_h={CELL: 0.75}, min_free_gb=0.0, margin=1.0)
     assert queue(tmp_path, soon) == 0 and cells.runs == []
     assert "estimated 45 min, 30 min left before the deadline: queue stopped" in capsys.readouterr().out
     assert queue(tmp_path, QueueLimits(min_free_gb=1e9)) == 1 and cells.runs == []
@@ -257,7 +257,9 @@ def test_no_cell_starts_past_the_deadline_or_below_the_disk_floor(monkeypatch, t
         "below the queue's 1e+09 GB: queue stopped (free disk, or lower --min-free-gb)"
         in capsys.readouterr().out
     )
-    later = QueueLimits(deadline=time.time() + 60 * 60, estimates_h={CELL: 0.75}, min_free_gb=0.0)
+    tight = QueueLimits(deadline=time.time() + 60 * 60, estimates_h={CELL: 0.75}, min_free_gb=0.0, margin=1.5)
+    assert queue(tmp_path, tight) == 0 and cells.runs == []  # 1.5 x 45 min does not fit in an hour
+    later = QueueLimits(deadline=time.time() + 60 * 60, estimates_h={CELL: 0.75}, min_free_gb=0.0, margin=1.0)
     assert queue(tmp_path, later) == 0 and len(cells.runs) == 1
 
 
