@@ -502,3 +502,22 @@ def test_too_few_photos_offer_the_count_there_is(tmp_path):
     (fix,) = fixes_in(str(info.value))
     assert fix == "photos.min_photos=4" and compose_photos(fix).photos.min_photos == 4
     assert len(read_photos(tmp_path, min_photos=compose_photos(fix).photos.min_photos).records) == 4
+
+
+def test_the_lens_round_trips_warp_puts_a_point_where_colmaps_simple_radial_does():
+    import pycolmap
+
+    from experiments.photo_roundtrip import radial_warp
+
+    w, h, f, k1 = 400, 300, 350.0, -0.1
+    undistorted = np.zeros((h, w, 3), np.uint8)
+    u, v = 330.0, 250.0  # pixel centre (COLMAP: +0.5)
+    undistorted[int(v), int(u)] = 255
+    warped = radial_warp(undistorted, k1, f)
+    camera = pycolmap.Camera(model="SIMPLE_RADIAL", width=w, height=h, params=[f, w / 2, h / 2, k1])
+    expected = camera.img_from_cam(np.array([[(u + 0.5 - w / 2) / f, (v + 0.5 - h / 2) / f, 1.0]]))[0]
+    ys, xs = np.nonzero(warped[..., 0] > 60)
+    weights = warped[ys, xs, 0].astype(float)
+    found = np.array([np.average(xs + 0.5, weights=weights), np.average(ys + 0.5, weights=weights)])
+    assert np.linalg.norm(found - expected) < 0.6
+    assert np.linalg.norm(expected - [u + 0.5, v + 0.5]) > 3  # the lens moved it (3.6 px)
