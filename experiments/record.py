@@ -41,7 +41,7 @@ from experiments.launch import Job, launch
 from experiments.runs import RunDirectoryError, read_metrics
 from pipeline.protocol import PROTOCOL
 from planner.budget import DEFAULT_LEVEL, level_rank
-from scene.io import write_text_atomic
+from scene.io import write_json_atomic, write_text_atomic
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -130,9 +130,13 @@ def summary_line(metrics: dict) -> str:
 
 
 def commit_record(dest: Path, message: str, repo: Path = ROOT) -> None:
-    """Commit only the record folder ``dest`` (other staged or modified files stay as they are)."""
+    """Commit only the record folder ``dest`` (other staged or modified files stay as they are);
+    nothing when it is as committed already (a cell that ran again to the same bytes)."""
     rel = os.path.relpath(dest, repo)
     subprocess.run(["git", "-C", str(repo), "add", "--", rel], check=True)
+    staged = subprocess.run(["git", "-C", str(repo), "diff", "--cached", "--quiet", "--", rel])
+    if staged.returncode == 0:
+        return
     subprocess.run(["git", "-C", str(repo), "commit", "-q", "-m", message, "--", rel], check=True)
 
 
@@ -174,12 +178,17 @@ def configured_gsd_m(overrides: Sequence[str] = ()) -> float:
 
 
 @contextmanager
-def revision_worktree(revision: str, prefix: str = "uavplan_tree_") -> Iterator[Path]:
-    """A detached worktree of ``revision`` in a temporary folder, removed after the block.
+def revision_worktree(
+    revision: str, prefix: str = "uavplan_tree_", parent: Path | None = None
+) -> Iterator[Path]:
+    """A detached worktree of ``revision`` in a temporary folder (under ``parent``: a shared file
+    system for a cluster's workers; default the system's temporary folder), removed after the block.
 
     Raises:
         ValueError: git cannot check ``revision`` out (it names no commit)."""
-    with tempfile.TemporaryDirectory(prefix=prefix) as tmp:
+    if parent is not None:
+        Path(parent).mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=prefix, dir=parent) as tmp:
         tree = Path(tmp) / "tree"
         added = subprocess.run(
             ["git", "-C", str(ROOT), "worktree", "add", "-q", "--detach", str(tree), revision],
@@ -194,13 +203,16 @@ def revision_worktree(revision: str, prefix: str = "uavplan_tree_") -> Iterator[
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False)
 
 
-def current_record(path: Path, version: int | None) -> dict | None:
+def current_record(path: Path, version: int | None, attempts: int = 1) -> dict | None:
     """The record ``path`` (a ``metrics.json``) where it counts at the current protocol and planner
-    ``version``; None where it is missing, of another protocol or an older plan."""
+    ``version``; None where it is missing, of another protocol or an older plan, or a failure of
+    fewer than ``attempts`` tries (``queue_attempt``: the queue was stopped before its retry)."""
     if not path.is_file():
         return None
     metrics = json.loads(path.read_text())
     if metrics.get("protocol") != PROTOCOL or metrics.get("planner_version") != version:
+        return None
+    if metrics.get("status", "ok") != "ok" and int(metrics.get("queue_attempt", 1)) < attempts:
         return None
     return metrics
 
@@ -266,6 +278,8 @@ def run_queue(
     records_root: Path = RECORDS,
     launcher: str = "local",
     n_jobs: int = 1,
+    status: dict | None = None,
+    require_bundle: bool = False,
 ) -> int:
     """Run the cells one after the other from a worktree of ``revision``; record (and commit) each one.
 
@@ -279,6 +293,10 @@ def run_queue(
     ``limits``: the deadline, the disk floor, pruning and retries (``QueueLimits``).
     ``launcher``, ``n_jobs``: where the cells run and how many at once (``experiments.launch``);
     the workers run the cells, this driver alone records and commits them.
+    ``status``: where the queue says it stopped early (``status["stopped"] = True``: the deadline,
+    the disk floor, another proxy), so a caller does not go on to later cells.
+    ``require_bundle``: a cell that planned on no committed proxy (``proxy_bundle`` missing: the
+    exploration's settings no longer match the committed one's key) stops the queue.
 
     Returns the number of cells that failed (a cell on another proxy counts).
 
@@ -335,9 +353,14 @@ def run_queue(
             f"note: the cells run the committed code at {head}; uncommitted changes are not in them",
             flush=True,
         )
-    versions = {planner: planner_version(planner) for planner in {cell[1] for cell in cells}}
     proxies = dict(proxies or {})
-    with revision_worktree(head, prefix="uavplan_queue_") as tree:
+    # A cluster's workers reach the worktree only on a shared file system: the study folder's.
+    shared = Path(study).resolve().parent if launcher in ("ray", "slurm") else None
+    with revision_worktree(head, prefix="uavplan_queue_", parent=shared) as tree:
+        # the versions of the code the cells run, not of the checkout's edits
+        versions = {
+            planner: planner_version(planner, tree / "conf") for planner in {cell[1] for cell in cells}
+        }
         env = dict(
             os.environ,
             UAVPLAN_CACHE=str(ROOT / "cache"),
@@ -350,7 +373,7 @@ def run_queue(
         todo = []
         for scene, planner, seed, budget, gsd_m, cell_overrides in cells:
             recorded = record_dir(preset, scene, planner, seed, budget, gsd_m, records_root) / "metrics.json"
-            if not force and current_record(recorded, versions[planner]) is not None:
+            if not force and current_record(recorded, versions[planner], limits.attempts) is not None:
                 print(
                     f"{scene}/{planner}/{seed}/{budget}/{gsd_m:g}: recorded already (--force runs it again)"
                 )
@@ -422,8 +445,12 @@ def run_queue(
                         queue.appendleft((cell, attempt + 1))
                     else:
                         state["failed"] += 1
+                        if limits.prune:
+                            shutil.rmtree(run_dir, ignore_errors=True)
                     continue
                 metrics = read_metrics(run_dir)
+                metrics["queue_attempt"] = attempt  # a failure retried in a later run if it was the first
+                write_json_atomic(run_dir / "metrics.json", metrics)
                 other = other_proxy(proxies, metrics)
                 folder = preset if other is None else proxy_preset(preset, other)
                 dest, metrics = record_cell(run_dir, folder, records_root)
@@ -443,6 +470,20 @@ def run_queue(
                     )
                     state["stopped"], state["failed"] = True, state["failed"] + 1
                     continue
+                if (
+                    require_bundle
+                    and metrics.get("proxy_source") == "reconstruction"
+                    and not metrics.get("proxy_bundle")
+                ):
+                    print(
+                        f"error: {name} planned on a proxy explored here, not on the committed one: the "
+                        "exploration's settings no longer match its key; queue stopped (restore the "
+                        "setting, or rebuild the proxy: uavplan-study proxies build "
+                        f"{scene}/{seed} --force --commit)",
+                        flush=True,
+                    )
+                    state["stopped"], state["failed"] = True, state["failed"] + 1
+                    continue
                 if ok and metrics.get("proxy_fingerprint"):
                     proxies.setdefault((scene, seed), str(metrics["proxy_fingerprint"]))
                 if not ok and retry:
@@ -451,6 +492,8 @@ def run_queue(
                 state["failed"] += not ok
                 if limits.prune:
                     shutil.rmtree(run_dir, ignore_errors=True)
+    if status is not None:
+        status["stopped"] = state["stopped"]
     return state["failed"]
 
 

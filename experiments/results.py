@@ -64,6 +64,7 @@ def current_records(runs: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
     """(the records of the current protocol and of their planner's current version, the others).
 
     A planner whose config the repository does not have (one from outside) counts at version None."""
+    from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
     from pipeline.protocol import planner_version
@@ -71,7 +72,7 @@ def current_records(runs: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
     def version(planner: str) -> int | None:
         try:
             return planner_version(planner)
-        except (OmegaConfBaseException, ValueError):
+        except (HydraException, OmegaConfBaseException, ValueError):
             return None
 
     versions = {planner: version(planner) for planner in runs["planner"].unique()}
@@ -194,7 +195,7 @@ def study_progress() -> list[str]:
     ]
 
 
-def study_readme(study: str, runs: pd.DataFrame, n_left_out: int = 0) -> str:
+def study_readme(study: str, runs: pd.DataFrame, n_left_out: int = 0, progress: bool = True) -> str:
     """The study folder's README: cells, protocol, code, machines, how to run and regenerate."""
     ok = runs[runs["status"] == "ok"]
     scenes = ", ".join(dict.fromkeys(scene_name(s) for s in runs["scene"]))
@@ -225,7 +226,7 @@ def study_readme(study: str, runs: pd.DataFrame, n_left_out: int = 0) -> str:
         f"**Machines.** {_machines(runs)}.",
         "",
         *study_cost(runs),
-        *(study_progress() if study == STUDY_PRESET else []),
+        *(study_progress() if study == STUDY_PRESET and progress else []),
         "**Files.** `tables/tables.md` (Tables I and II at the default budget), `fronts.md` and",
         "`fronts_images.png` / `fronts_flight_time.png` (quality per image over every budget),",
         "`headline.md` (the top-level README's table, per budget), `cells.csv` (every cell's metrics.json).",
@@ -302,7 +303,9 @@ def write_study(
         if (runs["status"] == "ok").any():
             written += write_fronts(runs, build, targets_pct, at_images, floor=floor)
         written.append(write_text_atomic(build / "cells.csv", runs.to_csv(index=False, lineterminator="\n")))
-        written.append(write_text_atomic(build / "README.md", study_readme(study, runs, len(left_out))))
+        progress = Path(cells_root).resolve() == CELLS.resolve()  # the study plan reads results/cells
+        readme = study_readme(study, runs, len(left_out), progress)
+        written.append(write_text_atomic(build / "README.md", readme))
         os.chmod(build, 0o755)
         old = out.with_name(f".{out.name}.old")
         shutil.rmtree(old, ignore_errors=True)

@@ -143,7 +143,7 @@ def study_cells() -> list[StudyCell]:
 
 
 def past_cell_hours(roots: Path | Sequence[Path]) -> pd.DataFrame:
-    """Median wall hours of earlier cells per (scene, planner, budget), from the records under
+    """Median wall hours of earlier cells per (scene, planner, budget, GSD), from the records under
     ``roots``: a group's hours come from the first root that has a cell of it (this study's own
     records before those of earlier studies)."""
     roots = [roots] if isinstance(roots, Path) else list(roots)
@@ -160,25 +160,49 @@ def past_cell_hours(roots: Path | Sequence[Path]) -> pd.DataFrame:
         frame = runs_frame(runs)
         wall = frame.get("cell_wall_time_s", pd.Series(index=frame.index, dtype=float))
         frame = frame[(frame["status"] == "ok") & wall.notna()]
-        frames.append(frame.assign(hours=frame["cell_wall_time_s"].astype(float) / 3600.0, rank=rank))
+        gsd = frame.get("target_gsd_m", pd.Series(index=frame.index, dtype=float))
+        frame = frame.assign(
+            hours=frame["cell_wall_time_s"].astype(float) / 3600.0,
+            rank=rank,
+            gsd=pd.to_numeric(gsd, errors="coerce").fillna(SURVEY_GSD_M).round(6),
+        )
+        frames.append(frame)
     if not frames:
-        return pd.DataFrame(columns=["scene", "planner", "budget", "hours"])
+        return pd.DataFrame(columns=["scene", "planner", "budget", "gsd", "hours"])
     frame = pd.concat(frames, ignore_index=True)
-    keys = ["scene", "planner", "budget"]
+    keys = ["scene", "planner", "budget", "gsd"]
     first = frame[frame["rank"] == frame.groupby(keys)["rank"].transform("min")]
     return first.groupby(keys, as_index=False)["hours"].median()
 
 
 def estimate_hours(cell: StudyCell, past: pd.DataFrame) -> float:
-    """A cell's wall hours guessed from the earlier cell most like it: the same scene, planner and
-    budget; else the same scene and planner at the default budget; else the planner anywhere."""
-    for mask in (
+    """A cell's wall hours guessed from the earlier cells most like it: the same scene, planner and
+    budget; else the same scene and planner at the default budget; else the planner's budget on any
+    scene. Cells at the cell's GSD first; else those at any GSD, scaled by the image count's
+    (GSD^-2). A planner at a level no record has (Yan at the seed paper's scale) counts its longest
+    recorded cell twice over; a planner without any record ``UNKNOWN_CELL_H``."""
+    gsd = past["gsd"] if "gsd" in past else pd.Series(SURVEY_GSD_M, index=past.index)
+    masks = [
         (past["scene"] == cell.scene) & (past["planner"] == cell.planner) & (past["budget"] == cell.budget),
-        (past["scene"] == cell.scene) & (past["planner"] == cell.planner) & (past["budget"] == DEFAULT_LEVEL),
         (past["planner"] == cell.planner) & (past["budget"] == cell.budget),
-    ):
+    ]
+    if level_rank(cell.budget) <= level_rank(DEFAULT_LEVEL):  # a larger budget costs more than its default
+        masks.insert(
+            1,
+            (past["scene"] == cell.scene)
+            & (past["planner"] == cell.planner)
+            & (past["budget"] == DEFAULT_LEVEL),
+        )
+    same_gsd = (gsd - cell.gsd_m).abs() < 1e-9
+    for mask in masks:
+        if (mask & same_gsd).any():
+            return float(past.loc[mask & same_gsd, "hours"].median())
+    for mask in masks:
         if mask.any():
-            return float(past.loc[mask, "hours"].median())
+            return float(past.loc[mask, "hours"].median()) * (SURVEY_GSD_M / cell.gsd_m) ** 2
+    planner = past["planner"] == cell.planner
+    if planner.any():
+        return 2.0 * float(past.loc[planner, "hours"].max())
     return UNKNOWN_CELL_H
 
 
@@ -255,12 +279,16 @@ def cell_estimates(cells: Sequence[StudyCell], past: pd.DataFrame) -> dict[tuple
 
 
 def ensure_bundles(
-    cells: Sequence[StudyCell], deadline: float | None, commit: bool = True, revision: str = "HEAD"
+    cells: Sequence[StudyCell],
+    deadline: float | None,
+    commit: bool = True,
+    revision: str = "HEAD",
+    then_hours: float = 0.0,
 ) -> list[tuple[str, int]]:
     """Build, export and commit the committed proxy (``proxies/default/<scene>/seed<k>``) of every
     scene and seed of ``cells`` that has none at the current protocol, from a worktree of
-    ``revision``; none is started that would not finish before ``deadline``. Returns the scenes and
-    seeds still without one."""
+    ``revision``; none is started that would not finish, with ``then_hours`` of cells after it,
+    before ``deadline``. Returns the scenes and seeds still without one."""
     import json
     import os
     import subprocess
@@ -285,7 +313,7 @@ def ensure_bundles(
         env.setdefault("UAVPLAN_MESHES", str((ROOT.parent / "shared" / "data" / "meshes").resolve()))
         env["PYTHONPATH"] = str(tree)
         for scene, seed in todo:
-            if deadline is not None and time.time() + BUNDLE_HOURS * 3600.0 > deadline:
+            if deadline is not None and time.time() + (BUNDLE_HOURS + then_hours) * 3600.0 > deadline:
                 left.append((scene, seed))
                 continue
             print(f"{scene}/{seed}: building its committed proxy", flush=True)
@@ -340,10 +368,17 @@ def run_cells(
         if limits.deadline is not None and time_left_h(limits.deadline) <= 0:
             break
         first = stretch[0]
-        if ensure_bundles(stretch, limits.deadline, commit):
+        first_hours = limits.margin * (limits.estimates_h or {}).get(
+            (first.scene, first.planner, first.seed, first.budget, first.gsd_m), limits.default_estimate_h
+        )
+        if ensure_bundles(stretch, limits.deadline, commit, then_hours=first_hours):
+            # the phases run in order: no later cell goes before these
             where = f"{first.scene}/{first.seed}"
-            print(f"note: no committed proxy for {where} yet: its cells wait for the next run", flush=True)
-            continue
+            print(
+                f"note: no committed proxy for {where} yet: the queue stops here until the next run",
+                flush=True,
+            )
+            break
         folder = first.preset(preset)
         runs = Path(study)
         extra = list(overrides)
@@ -355,6 +390,7 @@ def run_cells(
         else:
             runs = runs.parent / f"{runs.name}_noise" / f"rep{first.repeat}"
             extra += [f"cache_dir={(runs / 'cache').resolve()}"]
+        status: dict = {}
         failed += run_queue(
             [c.queue_cell() for c in stretch],
             folder,
@@ -365,7 +401,11 @@ def run_cells(
             commit=commit,
             launcher=launcher,
             n_jobs=n_jobs,
+            status=status,
+            require_bundle=True,
         )
+        if status.get("stopped"):  # the deadline, the disk, another proxy: no later cell first
+            break
     return failed
 
 

@@ -22,6 +22,7 @@ The forecast (``pipeline.forecast``) is not in the protocol: it is the planners'
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Mapping
 
 from omegaconf import DictConfig, OmegaConf
@@ -67,7 +68,9 @@ PROTOCOL_DIGESTS: dict[str, str] = {
 
 def protocol_settings(cfg: DictConfig | Mapping) -> dict:
     """The covered groups of a composed run config, resolved, without ``NEUTRAL_KEYS``."""
-    container = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
+    container = (
+        OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else copy.deepcopy(dict(cfg))
+    )
     settings = {group: container.get(group) for group in COVERED_GROUPS}
     for dotted in NEUTRAL_KEYS:
         group, *path = dotted.split(".")
@@ -100,13 +103,17 @@ def study_digests() -> dict[str, str]:
     return {scene: preset_digest(scene, overrides) for scene, overrides in STUDY_SCENES.items()}
 
 
-def planner_version(planner: str) -> int | None:
-    """The ``version`` of ``conf/planner/<planner>.yaml`` (None where it has none)."""
+def planner_version(planner: str, conf_dir=None) -> int | None:
+    """The ``version`` of ``conf/planner/<planner>.yaml`` (of ``conf_dir``, default this checkout's
+    ``conf/``; None where it has none).
+
+    Raises:
+        hydra.errors.MissingConfigException: no such planner config."""
     from pathlib import Path
 
     from hydra import compose, initialize_config_dir
 
-    conf = Path(__file__).resolve().parents[1] / "conf"
+    conf = Path(conf_dir) if conf_dir is not None else Path(__file__).resolve().parents[1] / "conf"
     with initialize_config_dir(config_dir=str(conf), version_base=None):
         version = compose("config", overrides=[f"planner={planner}"]).planner.get("version")
     return None if version is None else int(version)

@@ -77,16 +77,20 @@ def exploration_cache_key(scene: Scene, inputs: ProxyInputs, for_bundle: bool = 
     a change to the scored flights' dense settings leaves proxies valid).
 
     ``for_bundle``: the key of a committed proxy (``pipeline.proxy_bundle``), without the
-    deterministic mode: a committed proxy is one fixed mesh, whichever mode the cell then
-    reconstructs its own flight in (the noise floor's cells plan on the study's proxy)."""
+    deterministic mode (a committed proxy is one fixed mesh, whichever mode the cell then
+    reconstructs its own flight in: the noise floor's cells plan on the study's proxy) and without
+    a mesh scene's path (another checkout's is another path to the same mesh)."""
     from reconstruct.pipeline import proxy_flight_config, proxy_settings
 
     settings = proxy_settings(proxy_flight_config(inputs.reconstruct))
+    scene_settings = plain(inputs.scene)
     if for_bundle:
         settings.pop("deterministic", None)
+        # a mesh scene's path differs per checkout; its content is in scene.fingerprint
+        scene_settings = {k: v for k, v in scene_settings.items() if k != "path"}
     return cache_key(
         scene.fingerprint,
-        plain(inputs.scene),
+        scene_settings,
         plain(inputs.camera),
         plain(inputs.exploration),
         plain(inputs.render),

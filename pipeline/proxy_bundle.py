@@ -148,6 +148,8 @@ def find_bundle(key: str, root: Path = BUNDLES) -> Path | None:
     if not Path(root).is_dir():
         return None
     for path in sorted(Path(root).rglob(MANIFEST)):
+        if path.parent.name.endswith(".tmp"):  # an export that did not finish
+            continue
         manifest = json.loads(path.read_text())
         if manifest.get("key") == key and manifest.get("protocol") == PROTOCOL:
             return path.parent

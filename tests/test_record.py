@@ -184,6 +184,7 @@ class FakeCells:
         tree = tmp_path / "tree"
         tree.mkdir()
         (tree / "run.py").write_text(FAKE_RUN)
+        (tree / "conf").symlink_to(Path(record.ROOT) / "conf")  # the planners' versions
         self.outcomes, self.log = tmp_path / "outcomes.txt", tmp_path / "runs.txt"
         self.outcomes.write_text(" ".join(outcomes))
         self.log.write_text("")
@@ -191,7 +192,7 @@ class FakeCells:
         monkeypatch.setenv("FAKE_RUNS", str(self.log))
 
         @contextmanager
-        def worktree(revision, prefix=""):
+        def worktree(revision, prefix="", parent=None):
             yield tree
 
         monkeypatch.setattr(record, "revision_worktree", worktree)
@@ -230,6 +231,18 @@ def test_a_failed_cell_is_recorded_and_run_once_more(monkeypatch, tmp_path, caps
     assert "failed in stage reconstruct: RuntimeError: no model" in capsys.readouterr().out
     # recorded at this protocol and planner version, failed twice: the next run leaves it
     assert queue(tmp_path, QueueLimits(min_free_gb=0.0)) == 0 and len(cells.runs) == 2
+
+
+def test_a_failure_whose_retry_never_ran_is_run_again(monkeypatch, tmp_path):
+    """The deadline stopped the queue after a cell's first, failed try: the next run retries it."""
+    from experiments.record import QueueLimits
+
+    cells = FakeCells(monkeypatch, tmp_path, ["failed", "ok"])
+    assert queue(tmp_path, QueueLimits(min_free_gb=0.0, attempts=1)) == 1  # one try this time
+    path = record_dir("q", *CELL, root=tmp_path / "cells") / "metrics.json"
+    assert json.loads(path.read_text())["queue_attempt"] == 1
+    assert queue(tmp_path, QueueLimits(min_free_gb=0.0)) == 0 and len(cells.runs) == 2
+    assert json.loads(path.read_text())["status"] == "ok"
 
 
 def test_a_cell_that_fails_once_is_recorded_from_its_second_run_and_pruned(monkeypatch, tmp_path):

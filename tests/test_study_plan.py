@@ -84,6 +84,10 @@ def test_cell_hours_come_from_the_most_similar_earlier_cell():
     assert estimate_hours(StudyCell(1, "tomb", "yan", 0, "mid"), past) == 2.0  # its default's
     assert estimate_hours(StudyCell(1, "cathedral", "yan", 0, "mid"), past) == 1.0  # the planner's level
     assert estimate_hours(StudyCell(1, "school", "ours", 0), past) == pytest.approx(0.75)
+    # another GSD: the same cells' hours scaled by the image count (GSD^-2)
+    assert estimate_hours(StudyCell(6, "tomb", "yan", 0, "default", 0.02), past) == pytest.approx(4.5)
+    # a level above any record's: twice the planner's longest cell
+    assert estimate_hours(StudyCell(7, "tomb", "yan", 0, "highest"), past) == pytest.approx(4.0)
     cells = [
         StudyCell(1, "tomb", "yan", 0, "low"),
         StudyCell(1, "tomb", "yan", 1, "low"),
@@ -104,7 +108,7 @@ def test_a_noise_repeat_has_its_own_records_and_cache(monkeypatch, tmp_path):
 
     calls = []
     monkeypatch.setattr(experiments.record, "run_queue", lambda *a, **k: calls.append((a, k)) or 0)
-    monkeypatch.setattr(study_plan, "ensure_bundles", lambda cells, deadline, commit: [])
+    monkeypatch.setattr(study_plan, "ensure_bundles", lambda cells, deadline, commit, then_hours=0.0: [])
     cells = [
         StudyCell(1, "tomb", "ours", 0),
         StudyCell(1, "church", "ours", 0),
