@@ -27,6 +27,7 @@ def test_planner_config_matches_code_defaults(name):
     assert cfg.pop("name") == name
     assert cfg.pop("_target_") == f"planner.{name}.plan"
     cfg.pop("budget")  # its knob: test_budget_knobs_name_settings_and_move_them_one_way
+    assert cfg.pop("version") == 1  # its plans' version (results/protocol.md), not a parameter
     assert set(cfg) == set(module.DEFAULTS)
     for key, value in cfg.items():
         default = module.DEFAULTS[key]

@@ -93,8 +93,13 @@ def test_run_passes_the_level_to_the_planner_and_records_it():
     with initialize_config_dir(config_dir=os.fspath(ROOT / "conf"), version_base=None):
         cfg = compose("config", overrides=["planner=yan", "budget=low"])
         params, record = planner_setup(cfg)
-        assert params.n_samples == 1000 and "budget" not in params
-        assert record == {"budget": "low", "budget_knob": "n_samples", "budget_value": 1000}
+        assert params.n_samples == 1000 and "budget" not in params and "version" not in params
+        assert record == {
+            "budget": "low",
+            "budget_knob": "n_samples",
+            "budget_value": 1000,
+            "planner_version": 1,
+        }
 
 
 def test_the_budgets_preset_sweeps_levels_every_planner_defines():
