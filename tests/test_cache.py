@@ -132,7 +132,8 @@ with initialize_config_dir(config_dir=sys.argv[2], version_base=None):
     cfg = compose("config", overrides=["experiment=smoke", "scene=tomb"])
 scene = load_scene(cfg.scene, cache_dir=cache)
 inputs = ProxyInputs.of({**cfg, "cache_dir": cache})
-entry, record = build_exploration_proxy(scene, Intrinsics(**cfg.camera), inputs)
+# use_bundle=False: explore here, as for a scene without a committed proxy (the cache under test)
+entry, record = build_exploration_proxy(scene, Intrinsics(**cfg.camera), inputs, use_bundle=False)
 digest = hashlib.sha256((entry / PROXY_FILE).read_bytes()).hexdigest()
 out = {"entry": str(entry), "hit": record["cache_hit"], "proxy": digest, "n_images": record["n_images"]}
 print(json.dumps(out))
