@@ -23,7 +23,8 @@ from tests.golden_records import (
 ROOT = Path(__file__).resolve().parents[1]
 BUMP = (
     "a bug, or a planner version bump (conf/planner/{p}.yaml) with the plans rewritten by "
-    "`.venv/bin/python -m tests.golden_records --write` and a line in results/protocol.md"
+    "`.venv/bin/python -m tests.golden_records --write` and a line in results/protocol.md; the golden "
+    "values come from an AMD EPYC: on another processor, measure its spread first (results/protocol.md)"
 )
 
 
