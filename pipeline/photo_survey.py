@@ -285,15 +285,37 @@ def _reconstruct_with_gate(image_dir, run_dir, recon_cfg, seed, roi, photos_cfg,
     """``build_proxy`` behind the sanity gate: a model that fails it is mapped again with the other
     mapper (incremental <-> global), and refused when that fails too. Returns (mesh, record, the
     gate's record)."""
-    from pipeline.photo_setup import sanity_failures
+    import pycolmap
+
+    from pipeline.photo_setup import level_to_gimbal, sanity_failures
     from pipeline.photos import PhotoError
+    from reconstruct.align import pose_errors
     from reconstruct.errors import ReconstructionError
+    from reconstruct.flight import read_flight
     from reconstruct.pipeline import build_proxy
 
     sigma = float(recon_cfg["gnss"]["sigma_m"])
     tries = []
 
+    level = bool(photos_cfg.get("level_with_gimbal", True)) and attitude_logged
+    flight = read_flight(image_dir) if level else None
+
     def gate(record):
+        if level:
+            # The aligned model levelled by the gimbal's gravity-held attitude, before the gate and
+            # the dense stage (pipeline.photo_setup.level_to_gimbal); the errors measured again.
+            tilt = level_to_gimbal(Path(record["sparse_dir"]), flight, float(photos_cfg["max_rotation_deg"]))
+            if tilt is not None:
+                rec = pycolmap.Reconstruction(str(record["sparse_dir"]))
+                record.update(pose_errors(rec, flight))
+                record["gimbal_tilt_removed_deg"] = tilt
+                log.info(
+                    "levelled by the gimbal: %.2f deg of tilt removed; cameras %.3f m (median) from their "
+                    "fixes, %.2f deg from the gimbal",
+                    tilt,
+                    record["position_error_median_m"],
+                    record["rotation_error_median_deg"],
+                )
         failures = sanity_failures(
             record,
             sigma,
@@ -340,7 +362,10 @@ def _reconstruct_with_gate(image_dir, run_dir, recon_cfg, seed, roi, photos_cfg,
             {
                 "max_residual_sigmas": float(photos_cfg["max_residual_sigmas"]),
                 "max_rotation_deg": float(photos_cfg["max_rotation_deg"]),
+                "min_residual_limit_m": float(photos_cfg["min_residual_limit_m"]),
                 "attitude_checked": attitude_logged,
+                "levelled_by_gimbal": level,
+                "gimbal_tilt_removed_deg": recon.get("gimbal_tilt_removed_deg"),
                 "tries": tries,
             },
         )

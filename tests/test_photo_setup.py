@@ -521,3 +521,26 @@ def test_the_lens_round_trips_warp_puts_a_point_where_colmaps_simple_radial_does
     found = np.array([np.average(xs + 0.5, weights=weights), np.average(ys + 0.5, weights=weights)])
     assert np.linalg.norm(found - expected) < 0.6
     assert np.linalg.norm(expected - [u + 0.5, v + 0.5]) > 3  # the lens moved it (3.6 px)
+
+
+def test_a_tilted_model_is_levelled_by_the_gimbal_and_keeps_its_heading():
+    from scipy.spatial.transform import Rotation
+
+    from pipeline.photo_setup import gimbal_tilt
+
+    rng = np.random.default_rng(3)
+    gimbal = Rotation.from_euler("xyz", rng.uniform(-40, 40, (20, 3)), degrees=True).as_matrix()
+    datum = Rotation.from_rotvec(np.radians([1.5, -0.8, 1.3])).as_matrix()  # model = true rotated
+    model = gimbal @ datum  # cam_from_world of a model whose world is turned by the datum error
+    tilt = gimbal_tilt(model, gimbal)
+    up = np.array([0.0, 0.0, 1.0])
+    assert np.allclose(tilt @ datum.T @ up, up)  # the model's vertical turned onto the true one
+    # Levelled (world points p' = tilt p), what is left of the datum error is a turn about the
+    # vertical, the heading the GNSS fixes gave: 1.3 deg of it, none of the 1.7 deg tilt.
+    left = datum @ tilt.T
+    assert np.allclose(left @ up, up, atol=1e-9)
+    angle = np.degrees(np.arccos((np.trace(left) - 1.0) / 2.0))
+    assert 1.2 < angle < 1.4
+    levelled = model @ tilt.T
+    assert np.allclose(gimbal.transpose(0, 2, 1) @ levelled, left)
+    assert np.allclose(gimbal_tilt(gimbal, gimbal), np.eye(3))
