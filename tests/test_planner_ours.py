@@ -88,6 +88,7 @@ def test_defaults_are_the_config_file():
             cfg["budget_partners"][key] = dense[key]
     assert cfg.pop("name") == "ours" and cfg.pop("_target_") == "planner.ours.plan"
     assert cfg.pop("budget")["knob"] == "budget_limit.max_images"
+    assert cfg.pop("version") == 1  # its plans' version (results/protocol.md), not a parameter
     assert cfg == DEFAULTS
 
 
