@@ -16,11 +16,11 @@ import argparse
 import json
 import logging
 import os
-import subprocess
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from experiments.record import commit_record
 from pipeline.protocol import STUDY_SCENES
 from pipeline.proxy_bundle import BUNDLES, MANIFEST, BundleError, bundle_dir, check_bundle, export_bundle
 
@@ -102,12 +102,6 @@ def list_lines(root: Path = BUNDLES) -> list[str]:
     return lines
 
 
-def commit_bundle(dest: Path, message: str) -> None:
-    rel = os.path.relpath(dest, ROOT)
-    subprocess.run(["git", "-C", str(ROOT), "add", "--", rel], check=True)
-    subprocess.run(["git", "-C", str(ROOT), "commit", "-q", "-m", message, "--", rel], check=True)
-
-
 def parse_scene_seed(text: str) -> tuple[str, int]:
     scene, _, seed = text.partition("/")
     if not scene or not seed.isdigit():
@@ -149,7 +143,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
         print(line, flush=True)
         if args.commit:
-            commit_bundle(dest, line)
+            commit_record(dest, line)  # the folder alone, as a cell's record
     return 0
 
 

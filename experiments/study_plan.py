@@ -294,8 +294,7 @@ def ensure_bundles(
     import subprocess
     import time
 
-    from experiments.proxies import commit_bundle
-    from experiments.record import revision_worktree
+    from experiments.record import commit_with_retry, revision_worktree
     from pipeline.proxy_bundle import MANIFEST, bundle_dir
 
     wanted = list(dict.fromkeys((c.scene, c.seed) for c in cells))
@@ -324,7 +323,7 @@ def ensure_bundles(
                 left.append((scene, seed))
                 continue
             if commit:
-                commit_bundle(
+                commit_with_retry(
                     bundle_dir("default", scene, seed, ROOT / "proxies"),
                     f"Proxy bundle: {scene} seed {seed} at protocol {PROTOCOL} (uavplan-study proxies build)",
                 )
