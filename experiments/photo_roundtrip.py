@@ -294,16 +294,30 @@ def lens_roundtrip(args, cfg, origin) -> dict:
     scene = load_scene(cfg.scene, cache_dir=cfg.cache_dir)
     intrinsics = Intrinsics(width, height, float(cfg.camera.hfov_deg))
     render_dir = args.out / "render"
+    # What was rendered and warped into render_dir: a later run with the same entry, views, size and
+    # k1 takes the images as they are (12 MP renders cost minutes; the target times photos to plan).
+    rendered = {
+        "entry": str(Path(args.entry).resolve()),
+        "views": [int(i) for i in keep],
+        "size": [width, height],
+        "k1": float(args.k1),
+    }
+    marker = render_dir / "lens_render.json"
     start = time.perf_counter()
-    render_flight(scene, entry.viewpoints[keep], intrinsics, render_dir, cfg.render)
-    render_s = time.perf_counter() - start
-    if args.k1:
-        from PIL import Image
+    if marker.exists() and json.loads(marker.read_text()) == rendered:
+        print(f"the render in {render_dir} is this one's ({len(keep)} views): kept", file=sys.stderr)
+    else:
+        marker.unlink(missing_ok=True)
+        render_flight(scene, entry.viewpoints[keep], intrinsics, render_dir, cfg.render)
+        if args.k1:
+            from PIL import Image
 
-        for name in read_cameras(render_dir).names:
-            with Image.open(render_dir / name) as image:
-                rgb = np.asarray(image.convert("RGB"))
-            Image.fromarray(radial_warp(rgb, args.k1, intrinsics.focal_px)).save(render_dir / name)
+            for name in read_cameras(render_dir).names:
+                with Image.open(render_dir / name) as image:
+                    rgb = np.asarray(image.convert("RGB"))
+                Image.fromarray(radial_warp(rgb, args.k1, intrinsics.focal_px)).save(render_dir / name)
+        marker.write_text(json.dumps(rendered))
+    render_s = time.perf_counter() - start
     folder = photos_from_flight(render_dir, args.out / "photos", origin, args.gnss_sigma, args.seed)
     origin_text = f"{origin.latitude_deg},{origin.longitude_deg},{origin.height_m}"
     box = scene.structure_bounds
