@@ -21,10 +21,10 @@ import numpy as np
 import yaml
 from threadpoolctl import threadpool_limits
 
-from planner.cmaes_refine import spatial_clusters
 from planner.objective import ObjectiveState
-from planner.ours import plan, resolve_params
-from planner.ours_settings import detail_params
+from planner.ours.cmaes_refine import spatial_clusters
+from planner.ours.ours import plan, resolve_params
+from planner.ours.ours_settings import detail_params
 from planner.sampling import sample_surface
 from planner.visibility import VisibilityLimits, VisibilityModel
 from scene.camera import Intrinsics

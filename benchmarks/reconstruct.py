@@ -47,7 +47,7 @@ def render_base_flight(out_dir: Path, n_images: int) -> Path:
     """Render the tomb's exploratory flight with at least ``n_images`` views into ``out_dir``."""
     from omegaconf import OmegaConf
 
-    from planner.lawnmower import plan_exploration
+    from planner.lawnmower.lawnmower import plan_exploration
     from render.flight import render_flight
     from scene.camera import Intrinsics
     from scene.cameras_file import CAMERAS_FILE, read_cameras

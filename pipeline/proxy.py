@@ -136,7 +136,7 @@ def build_exploration_proxy(
         (the entry folder holding ``proxy.ply``, ``plan/``, ``images/``, ``recon/``; record with the
         exploration's image count, registered fraction, timings, ``entry`` and ``cache_hit``).
     """
-    from planner.lawnmower import plan_exploration
+    from planner.lawnmower.lawnmower import plan_exploration
     from reconstruct.pipeline import build_proxy
     from render import render_flight
 

@@ -1,6 +1,6 @@
 """Photo-consistency of the proxy in the exploratory flight's own images (``ours_plus`` evidence).
 
-The cloud signals of ``planner.evidence`` read the exploration's fused cloud, so a surface that the
+The cloud signals of ``planner.ours.evidence`` read the exploration's fused cloud, so a surface that the
 cloud itself places a few centimetres off looks sure to them. The images see it: a small patch of
 the proxy's tangent plane around a sample, projected into the views that see it, shows the same
 texture in every view only where the proxy lies on the true surface; off it, each view looks at a

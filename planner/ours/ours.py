@@ -28,21 +28,21 @@ from tqdm import tqdm
 
 from planner.base import plain_params
 from planner.budget import CONFIG_KEYS
-from planner.candidates import (
+from planner.heuristics import global_score
+from planner.objective import ObjectiveState
+from planner.ours.candidates import (
     CandidateSettings,
     detail_group,
     select_spread,
     side_pool,
     valid_candidates,
 )
-from planner.cmaes_refine import refine_clusters
-from planner.culling import cull
-from planner.heuristics import global_score
-from planner.objective import ObjectiveState
-from planner.ours_budget import PartnerTerm, fit_budget
-from planner.ours_settings import OursSettings
+from planner.ours.cmaes_refine import refine_clusters
+from planner.ours.culling import cull
+from planner.ours.ours_budget import PartnerTerm, fit_budget
+from planner.ours.ours_settings import OursSettings
+from planner.ours.stereo_partners import partner_matrix
 from planner.sampling import sample_surface, validate_proxy
-from planner.stereo_partners import partner_matrix
 from planner.trajectory import flight_length, order_viewpoints
 from planner.visibility import VisibilityModel
 from scene.camera import Intrinsics
@@ -56,7 +56,7 @@ def _yaml_defaults() -> dict:
     (``planner.budget.CONFIG_KEYS``) dropped."""
     from omegaconf import OmegaConf
 
-    conf = Path(__file__).resolve().parents[1] / "conf"
+    conf = Path(__file__).resolve().parents[2] / "conf"
     survey = OmegaConf.load(conf / "config.yaml").survey
     drone = OmegaConf.load(conf / "drone" / "default.yaml")
     reconstruct = OmegaConf.load(conf / "reconstruct" / "default.yaml")
@@ -229,11 +229,11 @@ def _coverage_group(point_index, state, model, limits, settings: CandidateSettin
 
 @dataclass(frozen=True)
 class PlanExtensions:
-    """What ``ours_plus`` adds to the paper's planner (``planner/ours_plus.py``); None: the paper's.
+    """What ``ours_plus`` adds to the paper's planner (``planner/ours/ours_plus.py``); None: the paper's.
 
     Attributes:
         weigh_samples: (points, normals) (P, 3) each -> (weights (P,), record for ``Plan.info``).
-        time_term: take-off point (3,) -> a ``planner.flight_time_term.FlightTimeTerm`` without its
+        time_term: take-off point (3,) -> a ``planner.ours.flight_time_term.FlightTimeTerm`` without its
             reference flight, which the views of the first addition set.
         planner: the name the plan carries.
     """

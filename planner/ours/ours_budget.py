@@ -8,7 +8,7 @@ battery budget (a view's stop and the detour to it, in the flight-time order of
 ``planner.trajectory.order_by_flight_time``). The objective is the one the plan reports as its
 final R (Eq. 10 with the detail heuristics, every view seen within the coverage range), so the
 views kept are the ones the objective values most for what they cost. A removal also pays for the
-stereo partners it takes from the views that stay (``PartnerTerm``, ``planner.stereo_partners``):
+stereo partners it takes from the views that stay (``PartnerTerm``, ``planner.ours.stereo_partners``):
 the objective alone left a 100-image tomb plan with 30 views of two partners or fewer, and the dense stage
 made less of their walls (archive/pre_p1/planner_ours.md). A budget the plan already
 fits leaves it as it is; a budget below what the model-coverage views alone need is refused, naming
@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from planner.objective import ObjectiveState
-from planner.stereo_partners import added_shortfall, forecast
+from planner.ours.stereo_partners import added_shortfall, forecast
 from scene.config import setting, typed_settings
 from scene.plan import PlanningError
 
@@ -111,7 +111,7 @@ def fit_budget(
         limit: the budget.
         drone: the drone, for a time or battery budget (``drone.model.DroneSettings``).
         takeoff: (3,) take-off point (m).
-        partners: the stereo partners the views will find (``planner.stereo_partners``) and what a
+        partners: the stereo partners the views will find (``planner.ours.stereo_partners``) and what a
             lost one costs; None: the views go by the objective alone.
 
     Returns:

@@ -8,7 +8,7 @@
    simplex a randomly rotated regular tetrahedron of size 0.05 x min_distance). The value of a trial
    position is the best total change of the objective mean(max(h_target - h, 0)^2) over the samples
    a camera there could see, the viewing direction being chosen by exhaustive search over a grid of
-   directions on the lower hemisphere (``planner.smith_directions``). Positions below the minimum
+   directions on the lower hemisphere (``planner.smith.smith_directions``). Positions below the minimum
    altitude, within the minimum distance of the proxy or inside a closed volume of it get a positive
    penalty (``position_penalty``). Each round draws
    views with probability proportional to their remaining budget (100 steps each), keeps those
@@ -33,10 +33,10 @@ import trimesh
 from tqdm import tqdm
 
 from planner.base import merge_params
-from planner.lawnmower import footprint_m, grid_positions, structure_bounds_from_proxy
+from planner.lawnmower.lawnmower import footprint_m, grid_positions, structure_bounds_from_proxy
 from planner.sampling import sample_surface, validate_proxy
-from planner.smith_directions import DirectionSearch
-from planner.smith_heuristic import (
+from planner.smith.smith_directions import DirectionSearch
+from planner.smith.smith_heuristic import (
     H_TARGET,
     H_UNOBSERVED,
     MAX_RAYS,
@@ -156,7 +156,7 @@ class SmithObjective:
         model: visibility with Smith's limits (d < d_max, cos(theta) >= 0.087, in the image, unoccluded).
         viewpoints: (V, 5) current views.
         max_distance_m: d_max of the resolution term.
-        max_rays, h_unobserved, h_target: see ``planner.smith_heuristic``.
+        max_rays, h_unobserved, h_target: see ``planner.smith.smith_heuristic``.
     """
 
     def __init__(
