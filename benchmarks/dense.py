@@ -11,7 +11,8 @@ A variant is ``NAME=KEY=VALUE,KEY=VALUE`` over ``conf/reconstruct/default.yaml``
 ``images/`` of the run directory and writes ``--out/<name>/dense.ply``; run it on an idle machine
 (one variant at a time, all cores) and quote the table it prints.
 
-``--cover K [K ...]`` only counts, for each K, the views ``reconstruct.dense.reference_views`` keeps
+``--cover K [K ...]`` only counts, for each K, the views
+``reconstruct.stereo.depth_maps.reference_views`` keeps
 when every sparse point needs K reference views (``reference_views_per_point=K``; no dense
 matching): whether a flight is redundant enough for the cover to save depth maps at all.
 
@@ -74,7 +75,7 @@ def cover_sizes(run_dir: Path, per_point: list[int], min_new_points: int) -> dic
     ``per_point``; with the views, sparse points and their mean track length (views per point)."""
     import pycolmap
 
-    from reconstruct.dense import reference_views, sparse_incidence
+    from reconstruct.stereo.depth_maps import reference_views, sparse_incidence
 
     model = pycolmap.Reconstruction(run_dir / "recon" / "sparse")
     names = sorted(model.image(i).name for i in model.reg_image_ids())

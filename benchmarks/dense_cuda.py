@@ -144,7 +144,8 @@ def run_dense(workspace: Path, backend: str, out: Path, voxel: float) -> dict:
     """Depth maps with one back-end, then fusion; write the PLY and a JSON of counts and times."""
     import pycolmap
 
-    from reconstruct.dense import compute_depth_maps_cpu, compute_depth_maps_cuda, fuse
+    from reconstruct.dense import fuse
+    from reconstruct.stereo.depth_maps import compute_depth_maps_cpu, compute_depth_maps_cuda
 
     cfg = dense_cfg()
     shutil.rmtree(workspace / "stereo" / "depth_maps", ignore_errors=True)

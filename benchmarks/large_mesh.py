@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     from evaluate.metrics import score_details
     from render import SceneRenderer
     from scene.camera import Intrinsics
-    from scene.mesh_loader import load_mesh_scene
+    from scene.mesh_loader import MeshSceneSpec, load_mesh_scene
 
     with tempfile.TemporaryDirectory() as tmp:
         path, n_faces = timed(
@@ -91,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
         # The GLB is in the school's inches: scene.scale converts.
         scene = timed(
             "load (scene.mesh_loader)",
-            lambda: load_mesh_scene(path, scale=0.0254, cache_dir=Path(tmp) / "cache"),
+            lambda: load_mesh_scene(path, MeshSceneSpec(scale=0.0254), cache_dir=Path(tmp) / "cache"),
         )
         print(
             f"scene: {scene.n_faces:,} faces with the ground, "

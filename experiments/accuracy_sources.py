@@ -1,7 +1,7 @@
 """Where a cell's accuracy goes: the SfM model's placement in the world (the GNSS datum), its cameras'
 own errors, and what is left to the dense stage.
 
-    uavplan-study accuracy-sources study/settled/tomb/ours/gsd0.03/lowest/seed0 \\
+    uavplan-diagnose accuracy-sources study/settled/tomb/ours/gsd0.03/lowest/seed0 \\
         study/settled/tomb/ours/gsd0.03/high/seed0 --out archive/pre_p1/accuracy_sources/tomb
 
 For every finished run (``recon/sparse``, ``images/cameras.json``, ``recon/dense.ply``):
@@ -189,7 +189,7 @@ def summarise(frame: pd.DataFrame) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = tool_parser("uavplan-study accuracy-sources", __doc__)
+    parser = tool_parser("uavplan-diagnose accuracy-sources", __doc__)
     parser.add_argument("runs", nargs="+", type=Path, help="run directories (a cell's output with its cloud)")
     parser.add_argument("--out", type=Path, required=True, help="folder for accuracy_sources.csv and .md")
     # 1M points register in ~20 s; 3 cm keeps pairs within the clouds' error (acc95 ~3 cm) and

@@ -1,6 +1,6 @@
 """How accurate are a flight's depth maps, pair by pair, against the ground truth?
 
-    uavplan-study depth-errors study/default_v4/church/ours/default/seed0 \\
+    uavplan-diagnose depth-errors study/default_v4/church/ours/default/seed0 \\
         study/default_v4/church/smith/default/seed0 --views 60 --out archive/pre_p1/depth_errors/church
 
 For every run: its aligned sparse model and images are put in a fresh dense workspace, the CPU
@@ -36,7 +36,7 @@ import trimesh
 
 from experiments.observations import GT_REGION_FILE, SPARSE_DIR
 from experiments.runs import RunDirectoryError, read_run_config, tool_parser
-from reconstruct.dense import consistent_depth, pair_depth, partner_weights
+from reconstruct.stereo.matching import consistent_depth, pair_depth, partner_weights
 from reconstruct.workspace import View, prepare_workspace, read_views, select_partners, sparse_points_by_image
 from scene.enclosure import raycasting_scene
 from scene.io import write_text_atomic
@@ -252,7 +252,7 @@ def summarise(pairs: pd.DataFrame) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = tool_parser("uavplan-study depth-errors", __doc__)
+    parser = tool_parser("uavplan-diagnose depth-errors", __doc__)
     parser.add_argument("runs", nargs="+", type=Path, help="run directories (a cell's output)")
     parser.add_argument(
         "--views", type=int, default=60, help="reference views per run, evenly spread (0: all)"

@@ -1,6 +1,6 @@
 """Planner stability: how much a plan changes when its proxy moves by the run-to-run amount.
 
-    uavplan-study plan-stability --proxy PROXY.ply --out OUT -- experiment=smoke scene=tomb
+    uavplan-diagnose plan-stability --proxy PROXY.ply --out OUT -- experiment=smoke scene=tomb
 
 Two default-mode reconstructions of the same exploratory flight give proxies a few millimetres apart
 (the smoke tomb: median 3.1 mm, 90th percentile 11 mm between the two surfaces; see
@@ -156,7 +156,7 @@ def to_markdown(frame: pd.DataFrame, proxy_path: str, sigma_mm: float, criteria:
 def main(argv: Sequence[str] | None = None) -> int:
     """Command line; returns the exit status."""
     defaults = ObservationCriteria()
-    parser = tool_parser("uavplan-study plan-stability", __doc__)
+    parser = tool_parser("uavplan-diagnose plan-stability", __doc__)
     parser.add_argument(
         "--proxy", type=Path, required=True, help="proxy mesh (e.g. cache/exploration/<key>/proxy.ply)"
     )

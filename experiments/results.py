@@ -35,7 +35,8 @@ from pathlib import Path
 import pandas as pd
 
 from evaluate.record import git
-from experiments.fronts import DEFAULT_AT_IMAGES, DEFAULT_TARGETS_PCT, on_axis, write_fronts
+from experiments.front_core import DEFAULT_AT_IMAGES, DEFAULT_TARGETS_PCT, on_axis
+from experiments.fronts import write_fronts
 from experiments.runs import RunDirectoryError, load_runs, method_sort_key, runs_frame, scene_name
 from experiments.study_plan import STUDY_PRESET
 from experiments.tables import code_provenance, tables_from_runs, write_tables

@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import os
 import sys
 from collections.abc import Iterable, Mapping
@@ -327,15 +326,6 @@ def recorded_path(run: Run, *names: str, file_name: str | None = None) -> Path |
             if candidate.is_file():
                 return candidate
     return None
-
-
-def finite_or_nan(value) -> float:
-    """``value`` as a float, NaN for None, strings and non-finite numbers."""
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        return math.nan
-    return number if math.isfinite(number) else math.nan
 
 
 # Keys of ``metrics['paths']`` (or ``plan.json``) that name meshes a figure can draw under a flight.

@@ -2,9 +2,10 @@
 
     uavplan run scene=tomb planner=ours           # one cell (Hydra overrides, as ``python run.py``)
     uavplan run -m scene=tomb,church planner=ours  # a sweep
+    uavplan view RUN_DIR --out plan.html           # a run's plan, interactive, in a browser
 
-``dispatch`` gives ``uavplan-study``, ``uavplan-bench`` (and ``uavplan``) their sub-commands: each
-is a module whose ``main(argv) -> int`` parses its own arguments.
+``dispatch`` gives ``uavplan-study``, ``uavplan-diagnose``, ``uavplan-bench`` (and ``uavplan``) their
+sub-commands: each is a module whose ``main(argv) -> int`` parses its own arguments.
 """
 
 from __future__ import annotations
@@ -128,7 +129,7 @@ def _summary(target: str) -> str:
     return ""
 
 
-COMMANDS = {"run": "!_run", "plan-photos": "!_plan_photos"}
+COMMANDS = {"run": "!_run", "plan-photos": "!_plan_photos", "view": "experiments.viewer"}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

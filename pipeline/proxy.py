@@ -80,7 +80,8 @@ def exploration_cache_key(scene: Scene, inputs: ProxyInputs, for_bundle: bool = 
     deterministic mode (a committed proxy is one fixed mesh, whichever mode the cell then
     reconstructs its own flight in: the noise floor's cells plan on the study's proxy) and without
     a mesh scene's path (another checkout's is another path to the same mesh)."""
-    from reconstruct.pipeline import proxy_flight_config, proxy_settings
+    from reconstruct.cache_keys import proxy_settings
+    from reconstruct.pipeline import proxy_flight_config
 
     settings = proxy_settings(proxy_flight_config(inputs.reconstruct))
     scene_settings = plain(inputs.scene)

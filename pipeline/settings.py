@@ -17,8 +17,9 @@ from omegaconf import DictConfig, OmegaConf
 from drone.model import DroneSettings
 from evaluate.settings import EvaluationSettings
 from planner.budget import DEFAULT_LEVEL, apply_budget
+from reconstruct.cache_keys import flight_fusion_bytes
 from reconstruct.dense_settings import DenseSettings
-from reconstruct.pipeline import flight_fusion_bytes, proxy_flight_config
+from reconstruct.pipeline import proxy_flight_config
 from reconstruct.sfm_settings import SfmSettings
 from scene.camera import Intrinsics
 from scene.config import plain

@@ -162,10 +162,3 @@ def order_by_flight_time(viewpoints: np.ndarray, takeoff: np.ndarray, drone, fir
     if sorted(order.tolist()) != list(range(n)):
         raise PlanningError("TSP solver returned an invalid tour")
     return order
-
-
-def tour_time_s(viewpoints: np.ndarray, order, takeoff: np.ndarray, drone) -> float:
-    """Seconds of the closed flight take-off -> ``order`` -> take-off on ``flight_time_costs``."""
-    cost = flight_time_costs(viewpoints, takeoff, drone)
-    path = [0, *(np.asarray(order, int) + 1), 0]
-    return float(sum(cost[a, b] for a, b in zip(path[:-1], path[1:], strict=True)))

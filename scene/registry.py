@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import inspect
 import os
 from collections.abc import Callable, Mapping
 
@@ -23,7 +22,7 @@ def load_scene(cfg: Mapping, cache_dir: str | os.PathLike | None = "cache") -> S
     Args:
         cfg: the ``scene`` config. Needs ``name`` (one of ``KNOWN_SCENES``). Procedural scenes take
             ``seed`` and their size/texture settings; ``mesh`` takes ``path`` and the keyword options
-            of ``scene.mesh_loader.load_mesh_scene`` (conf/scene/mesh.yaml lists them).
+            of ``scene.mesh_loader.MeshSceneSpec`` (conf/scene/mesh.yaml lists them).
         cache_dir: stage cache folder; generated textures go to ``cache_dir/textures`` (None: no cache).
 
     Raises:
@@ -35,7 +34,7 @@ def load_scene(cfg: Mapping, cache_dir: str | os.PathLike | None = "cache") -> S
     if name in PROCEDURAL:
         return PROCEDURAL[name](cfg, cache_dir=cache_dir)
     if name == "mesh":
-        from scene.mesh_loader import load_mesh_scene
+        from scene.mesh_loader import MeshSceneSpec, load_mesh_scene
 
         try:
             path = cfg.get("path")
@@ -44,9 +43,9 @@ def load_scene(cfg: Mapping, cache_dir: str | os.PathLike | None = "cache") -> S
         if path in (None, "", "???"):
             raise ValueError("scene=mesh needs scene.path=FILE (a textured OBJ/GLB/PLY/DAE mesh)")
         options = {k: v for k, v in dict(cfg).items() if k not in ("name", "path")}
-        known = set(inspect.signature(load_mesh_scene).parameters) - {"path", "cache_dir", "name"}
+        known = MeshSceneSpec.options()
         unknown = sorted(set(options) - known)
         if unknown:
             raise ValueError(f"scene=mesh: unknown option(s) {unknown}; known: {sorted(known)}")
-        return load_mesh_scene(path, cache_dir=cache_dir, **options)
+        return load_mesh_scene(path, MeshSceneSpec(**options), cache_dir=cache_dir)
     raise ValueError(f"unknown scene {name!r}; known scenes: {list(KNOWN_SCENES)}")
