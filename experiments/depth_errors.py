@@ -33,6 +33,7 @@ import cv2
 import numpy as np
 import pandas as pd
 import trimesh
+from omegaconf import OmegaConf
 
 from experiments.observations import GT_REGION_FILE, SPARSE_DIR
 from experiments.runs import RunDirectoryError, read_run_config, tool_parser
@@ -52,6 +53,7 @@ ANGLE_BINS_DEG = (0.0, 5.0, 10.0, 15.0, 20.0, 25.0, 30.0, 40.0, 90.0)
 
 def ground_truth_depth(scene, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Depth (H, W) along the optical axis (NaN = no hit), hit points (H, W, 3), normals (H, W, 3)."""
+    # heavy (open3d): imported on use
     import open3d as o3d
 
     u, v = np.meshgrid(np.arange(view.width, dtype=np.float64), np.arange(view.height, dtype=np.float64))
@@ -125,8 +127,6 @@ def analyse_run(
 
     ``dense_overrides``: ``key=value`` dotlist on the run's ``reconstruct.dense`` settings (the
     same flight and SfM under another matcher setting, for an ablation)."""
-    from omegaconf import OmegaConf
-
     cfg = read_run_config(run_dir)
     if cfg is None:
         raise RunDirectoryError(f"{run_dir}: no .hydra/config.yaml (not a run directory)")

@@ -28,8 +28,10 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
+from omegaconf import OmegaConf
 from tqdm import tqdm  # noqa: E402
 
+from evaluate.settings import VisualisationSettings
 from evaluate.visualise import COVERED_RGB, MISSED_RGB, view_pixels  # noqa: E402
 from experiments.flight_figures import (  # noqa: E402
     decimate_mesh,
@@ -212,10 +214,6 @@ def panel_keys(run: Run) -> dict:
 
     From ``evaluate.visualise`` in the run's ``.hydra/config.yaml``, else the evaluation defaults.
     """
-    from omegaconf import OmegaConf
-
-    from evaluate.settings import VisualisationSettings
-
     known = VisualisationSettings.__dataclass_fields__
     cfg = read_run_config(run.run_dir)
     given = OmegaConf.select(cfg, "evaluate.visualise", default=None) if cfg is not None else None

@@ -12,6 +12,7 @@ matplotlib.use("Agg")
 
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+import trimesh
 from matplotlib.figure import Figure  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
@@ -58,12 +59,11 @@ def decimate_mesh(mesh, max_faces: int):
         mesh: a ``trimesh.Trimesh``.
         max_faces: the largest triangle count to keep (>= 4).
     """
-    import trimesh
-
     if max_faces < 4:
         raise ValueError(f"max_faces must be at least 4, got {max_faces}")
     if len(mesh.faces) <= max_faces:
         return mesh
+    # heavy (open3d): imported on use
     import open3d as o3d
 
     o3d_mesh = o3d.geometry.TriangleMesh(

@@ -78,6 +78,7 @@ def registered_image_names(sparse_dir: Path) -> set[str] | None:
     """Names of the images in the COLMAP model at ``sparse_dir``, or None if there is no model."""
     if not any((sparse_dir / f"images.{ext}").is_file() for ext in ("bin", "txt")):
         return None
+    # heavy (pycolmap): imported on use
     import pycolmap
 
     return {image.name for image in pycolmap.Reconstruction(str(sparse_dir)).images.values()}

@@ -37,6 +37,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+from hydra import compose, initialize_config_dir
+
 from experiments.launch import Job, launch
 from experiments.runs import RunDirectoryError, read_metrics
 from pipeline.protocol import PROTOCOL, planner_version
@@ -171,8 +173,6 @@ def parse_cell(text: str) -> Cell:
 
 def configured_gsd_m(overrides: Sequence[str] = ()) -> float:
     """``survey.target_gsd_m`` of ``run.py`` with ``overrides`` (a preset may set it)."""
-    from hydra import compose, initialize_config_dir
-
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base=None):
         return float(compose("config", overrides=list(overrides)).survey.target_gsd_m)
 

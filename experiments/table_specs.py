@@ -7,6 +7,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from omegaconf import OmegaConf
+
 from evaluate.metrics import SURFACE_CLASSES
 
 # Bibliography keys of the baselines in the paper's LaTeX (Table II cites them beside the name).
@@ -116,8 +118,6 @@ ABLATION_PRESET = Path(__file__).resolve().parents[1] / "conf" / "experiment" / 
 
 def ablation_planners() -> tuple[str, ...]:
     """The planners the ablation preset sweeps (``ours`` and its variants), in its order."""
-    from omegaconf import OmegaConf
-
     swept = OmegaConf.load(ABLATION_PRESET).hydra.sweeper.params.planner
     return tuple(name.strip() for name in str(swept).split(","))
 

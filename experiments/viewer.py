@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from experiments.flight_figures import decimate_mesh, kind_colour
 from experiments.runs import (
@@ -92,8 +93,6 @@ MAX_BROWSER_VERTICES = 65_000
 def browser_mesh(mesh, max_faces: int = 60_000):
     """``mesh`` with duplicate vertices merged, at most ``max_faces`` triangles and fewer than
     ``MAX_BROWSER_VERTICES`` vertices (quadric decimation where needed)."""
-    import trimesh
-
     merged = trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), process=True)
     target = int(max_faces)
     while True:
@@ -133,6 +132,7 @@ def build_plan_figure(
         ``plotly.graph_objects.Figure``; the viewpoint trace of kind ``k`` is named ``k`` and holds
         the positions as plain lists (rounded to 0.1 mm).
     """
+    # heavy (plotly): imported on use
     import plotly.graph_objects as go
 
     vps = validate_viewpoint_array(viewpoints)

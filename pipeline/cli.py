@@ -23,6 +23,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from pipeline.cell import CellFailed, run_and_record, scene_label
+from pipeline.photo_survey import plan_from_photos
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
@@ -47,8 +48,6 @@ def run_cell_main(cfg: DictConfig) -> None:
 @hydra.main(version_base=None, config_path=str(CONF_DIR), config_name="photos")
 def plan_photos_main(cfg: DictConfig) -> None:
     """The second flight from a folder of photos of the first (``pipeline.photo_survey``)."""
-    from pipeline.photo_survey import plan_from_photos
-
     try:
         plan_from_photos(cfg, Path(HydraConfig.get().runtime.output_dir))
     except Exception as exc:

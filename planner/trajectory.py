@@ -15,6 +15,7 @@ from __future__ import annotations
 import elkai
 import numpy as np
 
+from drone.model import legs_time_s
 from scene.plan import PlanningError, polyline_length
 
 _MM_PER_M = 1000.0
@@ -105,8 +106,6 @@ def flight_time_costs(viewpoints: np.ndarray, takeoff: np.ndarray, drone) -> np.
     ``cost[i, j]`` is the leg from node i to node j (``drone.model.legs_time_s``: acceleration,
     cruise, climb and descent rates) plus, arriving at a waypoint from another, the yaw and gimbal
     turn between their attitudes; the photo time is the same for every order and left out."""
-    from drone.model import legs_time_s
-
     vps = np.asarray(viewpoints, dtype=float).reshape(-1, 5)
     nodes = np.concatenate([np.asarray(takeoff, float).reshape(1, 3), vps[:, :3]])
     n = len(nodes)

@@ -27,10 +27,16 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import psutil
 import pycolmap
 from tqdm import tqdm
 
+from reconstruct import fusion_chunks as fc
 from reconstruct.dense_settings import BACKENDS, DenseSettings
+from reconstruct.fusion_chunks import read_visibility
+from reconstruct.fusion_rays import best_conditioned_per_voxel, fuse_along_rays, well_conditioned
+from reconstruct.fusion_support import supported_points
+from reconstruct.oracle import compute_depth_maps_oracle
 from reconstruct.stereo.depth_maps import compute_depth_maps_cpu, compute_depth_maps_cuda
 from reconstruct.workspace import (
     overlapping_views,
@@ -96,8 +102,6 @@ def fusion_budget_gb(setting) -> float | None:
     if setting is None:
         return None
     if setting == "auto":
-        import psutil
-
         return AUTO_MEMORY_SHARE * psutil.virtual_memory().available / 1e9
     return float(setting)
 
@@ -177,9 +181,8 @@ def _fuse_views(workspace: Path, output_ply: Path, cfg: Mapping, names, determin
 def _fuse_in_chunks(
     workspace: Path, output_ply: Path, cfg: Mapping, names: list[str], max_views: int, deterministic: bool
 ) -> tuple[int, int]:
+    # heavy (open3d): imported on use
     import open3d as o3d
-
-    from reconstruct import fusion_chunks as fc
 
     sparse_dir = workspace / "sparse"
     # COLMAP's fusion walks from a view to its check_num_images most overlapping ones: a chunk
@@ -223,8 +226,6 @@ def _fuse_in_chunks(
 
 def _fuse_rays(workspace: Path, output_ply: Path, cfg: Mapping, names: list[str]) -> int:
     """``fusion.method: rays`` (``reconstruct.fusion_rays``): points on the depth maps' rays."""
-    from reconstruct.fusion_rays import best_conditioned_per_voxel, fuse_along_rays, well_conditioned
-
     views = read_views(workspace)
     partners = select_partners(workspace, views, cfg)
     baselines = stereo_baselines(views, partners, cfg.get("partner_weights", "equal"))
@@ -251,7 +252,6 @@ def _support_kept(cloud: Mapping, cfg: Mapping) -> np.ndarray | None:
     share = float(cfg["fusion"].get("support_share", 0.0))
     if share <= 0:
         return None
-    from reconstruct.fusion_support import supported_points
 
     keep = supported_points(
         cloud["points"], cloud["support"], float(cfg["fusion"]["support_radius_m"]), share
@@ -271,6 +271,7 @@ def _write_cloud(path: Path, cloud: Mapping, keep: np.ndarray | None) -> int:
     Raises OSError, leaving no file, when the disk has not the room or the file came out short:
     Open3D reports success on a PLY the full disk cut off, and evaluation then fails on it later.
     """
+    # heavy (open3d): imported on use
     import open3d as o3d
 
     keep = slice(None) if keep is None else keep
@@ -296,8 +297,6 @@ def _support_filtered(output_ply: Path, cfg: Mapping, n_points: int) -> int:
         return n_points
     # Imported here: the CUDA back-end's machine needs only numpy, OpenCV and pycolmap.
     import open3d as o3d
-
-    from reconstruct.fusion_chunks import read_visibility
 
     counts, _ = read_visibility(Path(str(output_ply) + ".vis"))
     cloud = o3d.io.read_point_cloud(str(output_ply))
@@ -349,8 +348,6 @@ def dense_reconstruct(
     if backend == "cuda":
         valid = compute_depth_maps_cuda(workspace, cfg)
     elif backend == "oracle":
-        from reconstruct.oracle import compute_depth_maps_oracle
-
         valid = compute_depth_maps_oracle(workspace, cfg, ground_truth, seed)
     else:
         valid = compute_depth_maps_cpu(workspace, cfg)

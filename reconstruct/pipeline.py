@@ -40,7 +40,7 @@ from reconstruct.proxy import poisson_proxy
 from reconstruct.sfm import run_sfm
 from reconstruct.timing import stage_time
 from scene.base import Box
-from scene.config import plain
+from scene.config import StageSettings, plain, stage_node
 from scene.io import write_atomic, write_json_atomic
 
 log = logging.getLogger(__name__)
@@ -76,7 +76,7 @@ def colmap_log_to(out_dir: Path) -> Iterator[None]:
 
 
 def reconstruct_flight(
-    image_dir, out_dir, cfg: Mapping, seed: int, ground_truth=None, sparse_check=None
+    image_dir, out_dir, cfg: Mapping | StageSettings, seed: int, ground_truth=None, sparse_check=None
 ) -> dict:
     """SfM with GNSS priors, similarity alignment to GNSS, dense depth + fusion for one flight.
 
@@ -86,7 +86,7 @@ def reconstruct_flight(
     Args:
         image_dir: the renderer's output (images + ``cameras.json``).
         out_dir: output folder (see the module docstring for its layout).
-        cfg: the ``reconstruct`` config.
+        cfg: the ``reconstruct`` config (``reconstruct.settings.ReconstructSettings`` in a cell).
         seed: seed of the GNSS noise, RANSAC and the mapper.
         ground_truth: the ground-truth mesh, for ``dense.backend=oracle`` only.
         sparse_check: called with the record once the aligned sparse model is on disk, before the
@@ -105,6 +105,7 @@ def reconstruct_flight(
     """
     image_dir, out_dir = Path(image_dir), Path(out_dir)
     flight = read_flight(image_dir)
+    cfg = stage_node(cfg)
     min_images = int(cfg["min_images"])
     if len(flight) < max(min_images, 2):
         raise ReconstructionError(
@@ -289,7 +290,9 @@ def _newest_log(out_dir: Path) -> str | None:
     return str(logs[-1]) if logs else None
 
 
-def oracle_flight(recon_dir, image_dir, out_dir, cfg: Mapping, seed: int, ground_truth) -> dict:
+def oracle_flight(
+    recon_dir, image_dir, out_dir, cfg: Mapping | StageSettings, seed: int, ground_truth
+) -> dict:
     """The matcher's ceiling beside a finished reconstruction: the ``oracle`` back-end's depth maps
     at the registered cameras of ``recon_dir/sparse``, fused by the same fusion into
     ``out_dir/dense.ply`` (``reconstruct.oracle_beside``).
@@ -298,6 +301,7 @@ def oracle_flight(recon_dir, image_dir, out_dir, cfg: Mapping, seed: int, ground
         ``dense_ply``, ``dense_time_s``, ``dense_cpu_s``, ``n_depth_maps``, ``n_dense_points``.
     """
     out_dir = Path(out_dir)
+    cfg = stage_node(cfg)
     dense_cfg = {**plain(cfg["dense"]), "backend": "oracle"}
     with stage_time() as clock:
         dense = dense_reconstruct(

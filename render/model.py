@@ -11,6 +11,7 @@ is the bottom row of the texture image ((H, W, 3) arrays, row 0 at the top).
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -278,8 +279,8 @@ def build_model(scene: Scene, intrinsics: Intrinsics, cfg: Mapping) -> BuiltMode
     Returns:
         The compiled model with the time it took (s).
     """
-    import time
 
+    # heavy (mujoco): imported on use
     import mujoco
 
     start = time.perf_counter()

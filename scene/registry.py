@@ -6,6 +6,8 @@ import os
 from collections.abc import Callable, Mapping
 
 from scene.base import Scene
+from scene.config import StageSettings, stage_node
+from scene.mesh_loader import MeshSceneSpec, load_mesh_scene
 from scene.procedural import build_cathedral, build_church, build_tomb
 
 PROCEDURAL: dict[str, Callable[..., Scene]] = {
@@ -16,7 +18,11 @@ PROCEDURAL: dict[str, Callable[..., Scene]] = {
 KNOWN_SCENES: tuple[str, ...] = (*PROCEDURAL, "mesh")
 
 
-def load_scene(cfg: Mapping, cache_dir: str | os.PathLike | None = "cache") -> Scene:
+class SceneSettings(StageSettings):
+    """The ``scene`` group of a cell (``load_scene`` reads it)."""
+
+
+def load_scene(cfg: Mapping | SceneSettings, cache_dir: str | os.PathLike | None = "cache") -> Scene:
     """Build or load the scene a config describes.
 
     Args:
@@ -28,14 +34,13 @@ def load_scene(cfg: Mapping, cache_dir: str | os.PathLike | None = "cache") -> S
     Raises:
         ValueError: missing or unknown ``name`` (the message lists the known scenes), missing ``path``.
     """
+    cfg = stage_node(cfg)
     if not isinstance(cfg, Mapping) or "name" not in cfg:
         raise ValueError(f"the scene config needs a 'name'; known scenes: {list(KNOWN_SCENES)}")
     name = str(cfg["name"])
     if name in PROCEDURAL:
         return PROCEDURAL[name](cfg, cache_dir=cache_dir)
     if name == "mesh":
-        from scene.mesh_loader import MeshSceneSpec, load_mesh_scene
-
         try:
             path = cfg.get("path")
         except Exception:  # OmegaConf raises on a mandatory '???' value left unset

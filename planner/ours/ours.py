@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+from omegaconf import OmegaConf
 from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
@@ -54,8 +55,6 @@ def _yaml_defaults() -> dict:
     shared target GSD taken from ``conf/config.yaml``, the drone from ``conf/drone`` and the dense
     stage's partner test from ``conf/reconstruct``; the config-only keys
     (``planner.budget.CONFIG_KEYS``) dropped."""
-    from omegaconf import OmegaConf
-
     conf = Path(__file__).resolve().parents[2] / "conf"
     survey = OmegaConf.load(conf / "config.yaml").survey
     drone = OmegaConf.load(conf / "drone" / "default.yaml")

@@ -23,8 +23,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from drone.model import flight_summary
 from planner.objective import ObjectiveState
 from planner.ours.stereo_partners import added_shortfall, forecast
+from planner.trajectory import flight_time_costs, order_by_flight_time
 from scene.config import setting, typed_settings
 from scene.plan import PlanningError
 
@@ -63,9 +65,6 @@ class BudgetLimit:
 
 def flight_of(viewpoints: np.ndarray, drone, takeoff: np.ndarray, tsp_runs: int) -> tuple[np.ndarray, dict]:
     """The flight-time order of ``viewpoints`` and the drone model's summary of it."""
-    from drone.model import flight_summary
-    from planner.trajectory import order_by_flight_time
-
     order = order_by_flight_time(viewpoints, takeoff, drone, runs=tsp_runs)
     return order, flight_summary(viewpoints[order], drone)
 
@@ -83,8 +82,6 @@ def _over(limit: BudgetLimit, n_views: int, flight: dict | None) -> bool:
 def seconds_saved(viewpoints: np.ndarray, order: np.ndarray, takeoff: np.ndarray, drone) -> np.ndarray:
     """(V,) seconds each view's removal saves in the flight ``order``: its photo, its turn and the
     detour to it (the legs to and from it, minus the direct leg that replaces them)."""
-    from planner.trajectory import flight_time_costs
-
     cost = flight_time_costs(viewpoints, takeoff, drone)
     path = np.concatenate([[0], np.asarray(order) + 1, [0]])
     saved = np.zeros(len(viewpoints))

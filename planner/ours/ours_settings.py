@@ -14,6 +14,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from drone.model import DroneError, DroneSettings
 from planner.heuristics import HeuristicParams
 from planner.ours.candidates import CandidateSettings, FlightLimits
 from planner.ours.cmaes_refine import CmaSettings
@@ -25,7 +26,6 @@ from scene.plan import PlanningError
 
 
 def _drone(node):
-    from drone.model import DroneError, DroneSettings
 
     try:
         return DroneSettings.from_config(node) if node is not None else DroneSettings.default()

@@ -38,6 +38,7 @@ from collections.abc import Mapping
 import numpy as np
 import scipy.sparse as sparse
 import trimesh
+from scipy.cluster.vq import kmeans2
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
@@ -394,8 +395,6 @@ def order_in_clusters(
     clusters of about ``cluster_size``, the cluster centres ordered by the shared TSP path and
     each cluster's views ordered by it from the end of the previous cluster.
     """
-    from scipy.cluster.vq import kmeans2
-
     n = len(positions)
     if n <= cluster_size:
         return order_viewpoints(positions, start=start, runs=runs)

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 import pycolmap
+import scipy.sparse
 from tqdm import tqdm
 
 from reconstruct.depth_filter import edge_pixels, geometric_support
@@ -52,8 +53,6 @@ def reference_views(incidence, per_point: int, min_new_points: int) -> np.ndarra
     Returns:
         (V,) bool, True for a view that gets a depth map.
     """
-    import scipy.sparse  # here: the CUDA back-end's machine needs only numpy, OpenCV and pycolmap
-
     if int(per_point) < 1 or int(min_new_points) < 1:
         raise ValueError(
             f"reference views: per_point and min_new_points must be >= 1, got {per_point}, {min_new_points}"
@@ -73,8 +72,6 @@ def reference_views(incidence, per_point: int, min_new_points: int) -> np.ndarra
 
 def sparse_incidence(rec: pycolmap.Reconstruction, names) -> scipy.sparse.csr_matrix:
     """(len(names), P) 0/1 matrix: which sparse points of the model ``rec`` each view sees."""
-    import scipy.sparse
-
     by_name = {rec.image(i).name: rec.image(i) for i in rec.reg_image_ids()}
     column = {pid: k for k, pid in enumerate(sorted(rec.point3D_ids()))}
     rows, cols = [], []
