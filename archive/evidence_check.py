@@ -34,7 +34,7 @@ def ours_plus_evidence_settings():
     """The ``evidence`` section of ``conf/planner/ours_plus.yaml``."""
     from omegaconf import OmegaConf
 
-    from planner.evidence import EvidenceSettings
+    from planner.ours.evidence import EvidenceSettings
 
     node = OmegaConf.load(ROOT / "conf" / "planner" / "ours_plus.yaml").evidence
     return EvidenceSettings.from_config(OmegaConf.to_container(node))
@@ -53,7 +53,7 @@ def true_error_m(mesh, points: np.ndarray) -> np.ndarray:
 def check_entry(entry: Path, ground_truth, n_points: int, seed: int) -> dict:
     """Weights, signals and true errors of one exploration entry's proxy samples; the correlations."""
     from pipeline.proxy import load_proxy
-    from planner.evidence import proxy_evidence, sample_weights
+    from planner.ours.evidence import proxy_evidence, sample_weights
     from planner.sampling import sample_surface
 
     settings = ours_plus_evidence_settings()

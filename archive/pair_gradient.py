@@ -23,7 +23,7 @@ import trimesh
 from omegaconf import OmegaConf
 
 from experiments.depth_errors import WALL_MAX_NORMAL_Z, ground_truth_depth
-from reconstruct.dense import pair_depth
+from reconstruct.stereo.matching import pair_depth
 from reconstruct.workspace import read_views, select_partners, sparse_points_by_image
 from scene.enclosure import raycasting_scene
 

@@ -5,7 +5,7 @@
 CACHE_ENTRY is the exploration cache entry the runs planned on (``cache/exploration/<key>``); each
 RUN a run directory (``.hydra/config.yaml``, ``plan/viewpoints.csv``). On ours' planning samples of
 that proxy (``n_points``, seed 0) and its coverage visibility, every plan's views get their forecast
-stereo partners (``planner.stereo_partners.partner_matrix``, ours' default rule). A view supports a
+stereo partners (``planner.ours.stereo_partners.partner_matrix``, ours' default rule). A view supports a
 wall sample (normal within 45 deg of horizontal) when it sees it and one of its partners does too,
 at a disparity gradient of at most G there (the two views' distances from the sample's tangent
 plane differ by at most that share of the view's). Prints, per run and G, the share of wall samples
@@ -23,10 +23,10 @@ from omegaconf import OmegaConf
 from experiments.depth_errors import WALL_MAX_NORMAL_Z
 from pipeline.proxy import load_proxy
 from pipeline.settings import cell_settings
-from planner.ours import resolve_params
-from planner.ours_settings import OursSettings
+from planner.ours.ours import resolve_params
+from planner.ours.ours_settings import OursSettings
+from planner.ours.stereo_partners import partner_matrix
 from planner.sampling import sample_surface
-from planner.stereo_partners import partner_matrix
 from planner.visibility import VisibilityModel
 
 GRADIENTS = (None, 0.5, 0.3, 0.2)

@@ -27,6 +27,22 @@ import sys
 import time
 from pathlib import Path
 
+from hydra import compose as hydra_compose
+from hydra import initialize_config_dir
+from hydra.utils import get_method
+from omegaconf import OmegaConf
+
+from drone.model import DroneSettings, flight_summary
+from evaluate.settings import EvaluationSettings
+from pipeline.cell import ordered_by_flight_time
+from pipeline.forecast import predicted_coverage
+from pipeline.proxy import load_proxy
+from pipeline.settings import planner_setup
+from reconstruct.proxy import degraded_ground_truth
+from scene.camera import Intrinsics
+from scene.io import write_json_atomic
+from scene.registry import load_scene
+
 REPO = Path(__file__).resolve().parents[1]
 
 PLANNERS = ("lawnmower", "smith", "yan")
@@ -37,9 +53,6 @@ SCENES = ("tomb", "church", "cathedral")
 
 def compose(scene: str, planner: str, budget: str = "default"):
     """The composed run config for ``scene=<scene> planner=<planner> budget=<budget>``."""
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
-
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base=None):
         overrides = [f"scene={scene}", f"planner={planner}", f"budget={budget}"]
         return hydra_compose("config", overrides=overrides)
@@ -81,20 +94,6 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.proxy is not None and len(args.scenes) != 1:
         parser.error("--proxy is the proxy of one scene: give exactly one --scenes")
-
-    from hydra.utils import get_method
-    from omegaconf import OmegaConf
-
-    from drone.model import DroneSettings, flight_summary
-    from evaluate.settings import EvaluationSettings
-    from pipeline.cell import ordered_by_flight_time
-    from pipeline.forecast import predicted_coverage
-    from pipeline.proxy import load_proxy
-    from pipeline.settings import planner_setup
-    from reconstruct.proxy import degraded_ground_truth
-    from scene.camera import Intrinsics
-    from scene.io import write_json_atomic
-    from scene.registry import load_scene
 
     records = []
     for scene_name in args.scenes:

@@ -11,7 +11,8 @@ A variant is ``NAME=KEY=VALUE,KEY=VALUE`` over ``conf/reconstruct/default.yaml``
 ``images/`` of the run directory and writes ``--out/<name>/dense.ply``; run it on an idle machine
 (one variant at a time, all cores) and quote the table it prints.
 
-``--cover K [K ...]`` only counts, for each K, the views ``reconstruct.dense.reference_views`` keeps
+``--cover K [K ...]`` only counts, for each K, the views
+``reconstruct.stereo.depth_maps.reference_views`` keeps
 when every sparse point needs K reference views (``reference_views_per_point=K``; no dense
 matching): whether a flight is redundant enough for the cover to save depth maps at all.
 
@@ -28,7 +29,17 @@ import os
 import sys
 from pathlib import Path
 
+import numpy as np
+from omegaconf import OmegaConf
+
 from benchmarks import write_records
+from evaluate.__main__ import load_scene_by_name, load_settings
+from evaluate.run import evaluate_reconstruction
+from reconstruct.dense import dense_reconstruct, fuse_report
+from reconstruct.flight import read_flight
+from reconstruct.stereo.depth_maps import reference_views, sparse_incidence
+from reconstruct.timing import stage_time
+from reconstruct.workspace import DEPTH_SUFFIX
 
 ROOT = Path(__file__).resolve().parents[1]
 REPORTED = ("acc90_m", "acc95_m", "comp_050", "comp_050_walls", "comp_050_roofs", "comp_050_ground")
@@ -49,10 +60,8 @@ def parse_variant(text: str) -> tuple[str, list[str]]:
 def true_pose_model(sparse_dir: Path, image_dir: Path, out_dir: Path) -> Path:
     """A copy of the sparse model in ``out_dir`` whose registered cameras sit at their true poses
     (``image_dir/cameras.json``); points and tracks stay as SfM left them. Returns ``out_dir``."""
-    import numpy as np
+    # heavy (pycolmap): imported on use
     import pycolmap
-
-    from reconstruct.flight import read_flight
 
     flight = read_flight(image_dir)
     truth = {name: (flight.rotations[i], flight.translations[i]) for i, name in enumerate(flight.names)}
@@ -72,9 +81,8 @@ def true_pose_model(sparse_dir: Path, image_dir: Path, out_dir: Path) -> Path:
 def cover_sizes(run_dir: Path, per_point: list[int], min_new_points: int) -> dict:
     """How many of ``run_dir``'s registered views the reference-view cover keeps for each K of
     ``per_point``; with the views, sparse points and their mean track length (views per point)."""
+    # heavy (pycolmap): imported on use
     import pycolmap
-
-    from reconstruct.dense import reference_views, sparse_incidence
 
     model = pycolmap.Reconstruction(run_dir / "recon" / "sparse")
     names = sorted(model.image(i).name for i in model.reg_image_ids())
@@ -99,12 +107,6 @@ def run_variant(
 ) -> dict:
     """Dense reconstruction of ``run_dir``'s sparse model with ``overrides``; timings and metrics.
     ``depth_from``: an earlier variant's folder whose depth maps these settings share: fuse only."""
-    from omegaconf import OmegaConf
-
-    from evaluate.run import evaluate_reconstruction
-    from reconstruct.dense import dense_reconstruct
-    from reconstruct.timing import stage_time
-
     cfg = OmegaConf.load(ROOT / "conf" / "reconstruct" / "default.yaml").dense
     absent = object()  # a setting whose default is null (fusion.max_memory_gb) is known
     unknown = [
@@ -119,9 +121,6 @@ def run_variant(
         sparse = true_pose_model(sparse, run_dir / "images", out_dir / "sparse_true_poses")
     with stage_time() as clock:
         if depth_from is not None:
-            from reconstruct.dense import fuse_report
-            from reconstruct.workspace import DEPTH_SUFFIX
-
             workspace = depth_from / "dense"
             maps = sorted(
                 p.name[: -len(DEPTH_SUFFIX)] for p in (workspace / "stereo" / "depth_maps").iterdir()
@@ -179,8 +178,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if args.cover:
-        from omegaconf import OmegaConf
-
         min_new = int(
             OmegaConf.load(ROOT / "conf" / "reconstruct" / "default.yaml").dense.reference_min_new_points
         )
@@ -192,7 +189,6 @@ def main(argv: list[str] | None = None) -> int:
         for k, kept in cover["kept"].items():
             print(f"  K={k}: {kept} of {cover['n_views']} views get a depth map")
         return 0
-    from evaluate.__main__ import load_scene_by_name, load_settings
 
     scene = load_scene_by_name(args.scene)
     settings = load_settings("default", [], no_vis=True)

@@ -40,6 +40,18 @@ import time
 from pathlib import Path
 
 import numpy as np
+import yaml
+
+from evaluate.__main__ import load_scene_by_name
+from evaluate.metrics import score_points
+from reconstruct.align import merge_model
+from reconstruct.dense import fuse
+from reconstruct.stereo.depth_maps import compute_depth_maps_cpu, compute_depth_maps_cuda
+from reconstruct.workspace import prepare_workspace
+from render import render_flight
+from scene.base import Box
+from scene.camera import Intrinsics
+from scene.registry import load_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -49,17 +61,14 @@ MAX_PLY_POINTS = 1_250_000  # 12 bytes each: the PLY stays under 16 MB, to copy 
 
 def dense_cfg() -> dict:
     """The default ``reconstruct.dense`` config (plain YAML: no interpolation in that file)."""
-    import yaml
-
     return yaml.safe_load(CONFIG.read_text())["dense"]
 
 
 def subset_model(rec, image_ids):
     """A new reconstruction of ``image_ids`` only: their cameras, poses, keypoints and the 3-D
     points observed by at least two of them (tracks cut to them)."""
+    # heavy (pycolmap): imported on use
     import pycolmap
-
-    from reconstruct.align import merge_model
 
     out = pycolmap.Reconstruction()
     merge_model(out, rec, image_ids)
@@ -68,10 +77,11 @@ def subset_model(rec, image_ids):
 
 def build_workspace(sparse: Path, images: Path, out: Path, num_images: int, seed: int, max_size: int) -> Path:
     """Undistorted COLMAP workspace of the ``num_images`` views nearest the ``seed``-th (by name)."""
+    # heavy (cv2): imported on use
     import cv2
-    import pycolmap
 
-    from reconstruct.workspace import prepare_workspace
+    # heavy (pycolmap): imported on use
+    import pycolmap
 
     rec = pycolmap.Reconstruction(sparse)
     ids = sorted(rec.reg_image_ids(), key=lambda i: rec.image(i).name)
@@ -142,9 +152,8 @@ def voxel_mean(points: np.ndarray, voxel: float) -> np.ndarray:
 
 def run_dense(workspace: Path, backend: str, out: Path, voxel: float) -> dict:
     """Depth maps with one back-end, then fusion; write the PLY and a JSON of counts and times."""
+    # heavy (pycolmap): imported on use
     import pycolmap
-
-    from reconstruct.dense import compute_depth_maps_cpu, compute_depth_maps_cuda, fuse
 
     cfg = dense_cfg()
     shutil.rmtree(workspace / "stereo" / "depth_maps", ignore_errors=True)
@@ -183,11 +192,8 @@ def run_dense(workspace: Path, backend: str, out: Path, voxel: float) -> dict:
 
 def score(plys: list[Path], workspace: Path, scene_name: str, voxel: float) -> None:
     """Evaluation-stage metrics of each PLY in the scene region and in the subset's x, y range."""
+    # heavy (pycolmap): imported on use
     import pycolmap
-
-    from evaluate.__main__ import load_scene_by_name
-    from evaluate.metrics import score_points
-    from scene.base import Box
 
     scene = load_scene_by_name(scene_name)
     region = scene.evaluation_region
@@ -210,12 +216,6 @@ def score(plys: list[Path], workspace: Path, scene_name: str, voxel: float) -> N
 def time_render(viewpoints_csv: Path, out: Path, n_views: int, cache_dir: Path) -> dict:
     """Build the tomb (textures generated into ``cache_dir``) and render the first ``n_views`` of a
     flight's ``viewpoints.csv`` with EGL; print and return the timings (s) and images/s."""
-    import yaml
-
-    from render import render_flight
-    from scene.camera import Intrinsics
-    from scene.registry import load_scene
-
     scene_cfg = {**yaml.safe_load((ROOT / "conf" / "scene" / "tomb.yaml").read_text()), "seed": 0}
     start = time.perf_counter()
     scene = load_scene(scene_cfg, cache_dir=cache_dir)

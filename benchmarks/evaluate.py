@@ -25,6 +25,7 @@ import trimesh
 from evaluate.geometry import sample_surface
 from evaluate.metrics import GroundTruth, score_details, score_file_details
 from evaluate.settings import EvaluationSettings
+from evaluate.visualise import write_error_visualisation
 from scene.base import Box
 
 SIZE_M = 40.0
@@ -123,6 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     )
 
     if args.from_file:
+        # heavy (open3d): imported on use
         import open3d as o3d
 
         with tempfile.TemporaryDirectory() as tmp:
@@ -136,8 +138,6 @@ def main(argv: list[str] | None = None) -> int:
                 raise RuntimeError("scoring from the PLY file disagrees with scoring the array")
 
     if args.vis:
-        from evaluate.visualise import write_error_visualisation
-
         with tempfile.TemporaryDirectory() as tmp:
             start = time.perf_counter()
             write_error_visualisation(

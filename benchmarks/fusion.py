@@ -14,6 +14,11 @@ import sys
 import time
 from pathlib import Path
 
+from omegaconf import OmegaConf
+
+from reconstruct.dense import _fuse_atomic
+from reconstruct.workspace import DEPTH_SUFFIX
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -23,10 +28,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="fused cloud (PLY)")
     parser.add_argument("--max-memory-gb", type=float, help="override reconstruct.dense.fusion.max_memory_gb")
     args = parser.parse_args(argv)
-    from omegaconf import OmegaConf
-
-    from reconstruct.dense import _fuse_atomic
-    from reconstruct.workspace import DEPTH_SUFFIX
 
     maps = args.workspace / "stereo" / "depth_maps"
     names = sorted(p.name[: -len(DEPTH_SUFFIX)] for p in maps.glob(f"*{DEPTH_SUFFIX}"))

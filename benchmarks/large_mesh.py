@@ -25,6 +25,12 @@ import numpy as np
 import trimesh
 from omegaconf import OmegaConf
 
+from evaluate.geometry import sample_surface
+from evaluate.metrics import score_details
+from render import SceneRenderer
+from scene.camera import Intrinsics
+from scene.mesh_loader import MeshSceneSpec, load_mesh_scene
+
 SCHOOL = sorted(
     glob.glob(str(Path(__file__).resolve().parents[2] / "shared/data/meshes/school/meshes/*.dae"))
 )
@@ -76,12 +82,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--points", type=int, default=5_000_000)
     args = parser.parse_args(argv)
 
-    from evaluate.geometry import sample_surface
-    from evaluate.metrics import score_details
-    from render import SceneRenderer
-    from scene.camera import Intrinsics
-    from scene.mesh_loader import load_mesh_scene
-
     with tempfile.TemporaryDirectory() as tmp:
         path, n_faces = timed(
             "make the scan (not the loader)",
@@ -91,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
         # The GLB is in the school's inches: scene.scale converts.
         scene = timed(
             "load (scene.mesh_loader)",
-            lambda: load_mesh_scene(path, scale=0.0254, cache_dir=Path(tmp) / "cache"),
+            lambda: load_mesh_scene(path, MeshSceneSpec(scale=0.0254), cache_dir=Path(tmp) / "cache"),
         )
         print(
             f"scene: {scene.n_faces:,} faces with the ground, "

@@ -19,15 +19,19 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from omegaconf import OmegaConf
 from threadpoolctl import threadpool_limits
 
-from planner.cmaes_refine import spatial_clusters
 from planner.objective import ObjectiveState
-from planner.ours import plan, resolve_params
-from planner.ours_settings import detail_params
+from planner.ours.cmaes_refine import spatial_clusters
+from planner.ours.ours import plan, resolve_params
+from planner.ours.ours_settings import detail_params
 from planner.sampling import sample_surface
 from planner.visibility import VisibilityLimits, VisibilityModel
+from reconstruct.proxy import degraded_ground_truth
 from scene.camera import Intrinsics
+from scene.io import write_json_atomic
+from scene.registry import load_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -37,10 +41,6 @@ def _load_yaml(path: Path) -> dict:
 
 
 def _proxy(scene_name: str, seed: int, cache_dir: str):
-    from omegaconf import OmegaConf
-
-    from reconstruct.proxy import degraded_ground_truth
-    from scene.registry import load_scene
 
     raw = OmegaConf.load(ROOT / "conf" / "scene" / f"{scene_name}.yaml")
     scene_cfg = OmegaConf.create({"seed": seed, "scene": raw})  # resolves ${seed}
@@ -182,8 +182,6 @@ def main(argv=None) -> int:
             }
         )
     if args.json:
-        from scene.io import write_json_atomic
-
         write_json_atomic(args.json, records)
     return 0
 

@@ -32,6 +32,15 @@ import sys
 import time
 from pathlib import Path
 
+from omegaconf import OmegaConf
+
+from planner.lawnmower.lawnmower import plan_exploration
+from reconstruct.pipeline import build_proxy, reconstruct_flight
+from render.flight import render_flight
+from scene.camera import Intrinsics
+from scene.cameras_file import CAMERAS_FILE, read_cameras, write_cameras
+from scene.procedural.tomb import build_tomb
+
 ROOT = Path(__file__).resolve().parents[1]
 STAGES = (
     "extraction_time_s",
@@ -45,14 +54,6 @@ STAGES = (
 
 def render_base_flight(out_dir: Path, n_images: int) -> Path:
     """Render the tomb's exploratory flight with at least ``n_images`` views into ``out_dir``."""
-    from omegaconf import OmegaConf
-
-    from planner.lawnmower import plan_exploration
-    from render.flight import render_flight
-    from scene.camera import Intrinsics
-    from scene.cameras_file import CAMERAS_FILE, read_cameras
-    from scene.procedural.tomb import build_tomb
-
     if (out_dir / CAMERAS_FILE).is_file() and len(read_cameras(out_dir)) >= n_images:
         return out_dir
     base = OmegaConf.load(ROOT / "conf" / "config.yaml")
@@ -76,8 +77,6 @@ def render_base_flight(out_dir: Path, n_images: int) -> Path:
 
 def subset_flight(base: Path, out_dir: Path, n_images: int) -> Path:
     """A flight of the first ``n_images`` images of ``base`` (symbolic links + a cut cameras.json)."""
-    from scene.cameras_file import read_cameras, write_cameras
-
     cameras = read_cameras(base)
     if len(cameras) < n_images:
         raise SystemExit(f"{base} has {len(cameras)} images, fewer than {n_images}")
@@ -102,10 +101,6 @@ def run_one(image_dir: Path, out_dir: Path, mode: str = "default", settings: str
     """Reconstruct one flight in this process (with its proxy for ``settings`` ``proxy``, as a scored
     flight for ``scored``); return the record with the wall and CPU time (s) and peak memory (GB).
     ``mode`` ``deterministic`` sets ``reconstruct.deterministic``."""
-    from omegaconf import OmegaConf
-
-    from reconstruct.pipeline import build_proxy, reconstruct_flight
-
     cfg = OmegaConf.load(ROOT / "conf" / "reconstruct" / "default.yaml")
     cfg.deterministic = mode == "deterministic"
     cfg.keep_dense_workspace = False  # a cell's setting in the study; the bench keeps only records

@@ -23,6 +23,10 @@ import time
 from pathlib import Path
 
 import numpy as np
+from omegaconf import OmegaConf
+
+from render import render_flight
+from scene.camera import Intrinsics
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -64,12 +68,8 @@ def survey_viewpoints(structure_lo, structure_hi, n_views: int, intrinsics) -> n
 
 def run_cell(scene_name: str, backend: str, n_views: int, out_dir: Path) -> dict:
     """Build one scene and render ``n_views`` with one back-end in this process; return the figures."""
-    from omegaconf import OmegaConf
-
-    from render import render_flight
-    from scene.camera import Intrinsics
-
     try:
+        # optional dependency: imported on use
         from scene.registry import load_scene
     except ImportError as err:
         raise SystemExit(f"scene.registry.load_scene is not available yet: {err}") from err

@@ -26,8 +26,14 @@ import shutil
 import sys
 from pathlib import Path
 
+from omegaconf import OmegaConf
+
 from benchmarks import write_records
 from benchmarks.dense import parse_variant
+from reconstruct.align import georeference_models, pose_errors
+from reconstruct.flight import read_flight, simulate_gnss
+from reconstruct.sfm import SfmResult, check_pairs, map_reconstruction, run_sfm, sfm_options
+from reconstruct.timing import stage_time
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -37,10 +43,8 @@ STAGES = ("extraction", "matching", "mapping")
 def map_database(database: Path, flight, gnss, out_dir: Path, sfm_cfg, seed: int):
     """Map a copy of ``database`` (features, pairs and priors already there) with ``sfm_cfg``, after
     its prior check of the pairs (``matching.prior_check``) when that is on."""
+    # heavy (pycolmap): imported on use
     import pycolmap
-
-    from reconstruct.sfm import SfmResult, check_pairs, map_reconstruction, sfm_options
-    from reconstruct.timing import stage_time
 
     out_dir.mkdir(parents=True, exist_ok=True)
     copy = out_dir / "database.db"
@@ -62,12 +66,6 @@ def run_variant(
 ) -> dict:
     """SfM, GNSS alignment and merging of the flight in ``image_dir`` with ``overrides``
     (only mapping, from a copy of ``database``, when given)."""
-    from omegaconf import OmegaConf
-
-    from reconstruct.align import georeference_models, pose_errors
-    from reconstruct.flight import read_flight, simulate_gnss
-    from reconstruct.sfm import run_sfm
-
     cfg = OmegaConf.load(ROOT / "conf" / "reconstruct" / "default.yaml")
     unknown = [o.split("=")[0] for o in overrides if OmegaConf.select(cfg.sfm, o.split("=")[0]) is None]
     if unknown:

@@ -24,6 +24,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
+from omegaconf import OmegaConf
 
 # The drone every run and export takes unless its config says otherwise.
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "conf" / "drone" / "default.yaml"
@@ -116,15 +117,11 @@ class DroneSettings:
     @classmethod
     def default(cls) -> DroneSettings:
         """The drone of ``conf/drone/default.yaml``."""
-        from omegaconf import OmegaConf
-
         return cls.from_config(OmegaConf.to_container(OmegaConf.load(DEFAULT_CONFIG), resolve=True))
 
     @classmethod
     def of_run(cls, run_dir: str | Path) -> DroneSettings:
         """The drone a run directory was planned with (its ``.hydra/config.yaml``), else the default."""
-        from omegaconf import OmegaConf
-
         config_path = Path(run_dir) / ".hydra" / "config.yaml"
         node = OmegaConf.select(OmegaConf.load(config_path), "drone") if config_path.is_file() else None
         if node is None:

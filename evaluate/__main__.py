@@ -16,6 +16,17 @@ import logging
 import sys
 from pathlib import Path
 
+import trimesh
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from evaluate.loading import ReconstructionFileError
+from evaluate.metrics import GroundTruth
+from evaluate.record import write_metrics
+from evaluate.run import evaluate_reconstruction, parse_region
+from evaluate.settings import EvaluationSettings
+from scene.base import Box
+
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
 
@@ -56,10 +67,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def load_settings(name: str, overrides: list[str], no_vis: bool):
     """The evaluate settings of ``conf/evaluate/<name>.yaml`` with dot-list overrides applied."""
-    from omegaconf import OmegaConf
-
-    from evaluate.settings import EvaluationSettings
-
     cfg = _load_group_config(name)
     bad = [o for o in overrides if "=" not in o]
     if bad:
@@ -72,8 +79,6 @@ def load_settings(name: str, overrides: list[str], no_vis: bool):
 
 def _load_group_config(name: str):
     """``conf/evaluate/<name>.yaml`` with its ``defaults`` list (names in the same group) merged in."""
-    from omegaconf import OmegaConf
-
     path = CONF_DIR / "evaluate" / f"{name}.yaml"
     if not path.is_file():
         raise ValueError(f"evaluation config not found: {path}")
@@ -87,12 +92,6 @@ def _load_group_config(name: str):
 
 def load_ground_truth(args):
     """A ``Scene`` (``--scene``) or ``GroundTruth`` (``--gt-mesh``) to score against."""
-    import trimesh
-
-    from evaluate.metrics import GroundTruth
-    from evaluate.run import parse_region
-    from scene.base import Box
-
     if args.scene is not None:
         if args.region is not None:
             raise ValueError("--region goes with --gt-mesh; a scene brings its own evaluation region")
@@ -113,10 +112,10 @@ def load_scene_by_name(name: str, overrides: list[str] = ()):
     """``scene.registry.load_scene`` on ``conf/scene/<name>.yaml`` composed like ``run.py`` does,
     with ``KEY=VALUE`` overrides of the scene settings."""
     try:
+        # optional dependency: imported on use
         from scene.registry import load_scene
     except ImportError as exc:
         raise ValueError(f"no scene registry available ({exc}); use --gt-mesh FILE --region ...") from exc
-    from hydra import compose, initialize_config_dir
 
     if not (CONF_DIR / "scene" / f"{name}.yaml").is_file():
         known = sorted(p.stem for p in (CONF_DIR / "scene").glob("*.yaml"))
@@ -129,9 +128,6 @@ def load_scene_by_name(name: str, overrides: list[str] = ()):
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
-    from evaluate.loading import ReconstructionFileError
-    from evaluate.record import write_metrics
-    from evaluate.run import evaluate_reconstruction
 
     try:
         settings = load_settings(args.config, args.set, args.no_vis)

@@ -200,6 +200,7 @@ class SurfaceDistance:
     """
 
     def __init__(self, mesh: trimesh.Trimesh, origin=None):
+        # heavy (open3d): imported on use
         import open3d as o3d
 
         self._o3d = o3d

@@ -7,6 +7,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from evaluate.geometry import sample_surface
+
 # Read with trimesh: meshes (faces) or vertex-only point clouds.
 TRIMESH_SUFFIXES = (".ply", ".obj", ".off", ".stl", ".glb", ".gltf")
 # Read with Open3D's point-cloud reader.
@@ -80,6 +82,7 @@ def _load_numpy(path: Path) -> np.ndarray:
 
 
 def _load_open3d(path: Path) -> np.ndarray:
+    # heavy (open3d): imported on use
     import open3d as o3d
 
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
@@ -122,8 +125,6 @@ def _load_trimesh(
     with_faces = [m for m in meshes if len(m.faces)]
     kind = "point_cloud"
     if with_faces and mesh_input == "surface":
-        from evaluate.geometry import sample_surface
-
         mesh = trimesh.util.concatenate(with_faces) if len(with_faces) > 1 else with_faces[0]
         parts.append(sample_surface(mesh, density, seed, max_samples)[0])
         kind = "mesh_surface_samples"

@@ -60,6 +60,7 @@ class VisualisationSettings:
             raise ValueError(
                 f"evaluate.visualise.point_radius_px must lie in [0, 5], got {self.point_radius_px}"
             )
+        # heavy (matplotlib): imported on use
         import matplotlib
 
         if self.colormap not in matplotlib.colormaps:

@@ -29,6 +29,7 @@ VIEW_AXES_BOX = (0.01, 0.02, 0.80, 0.90)
 
 def error_colors(distances_m: np.ndarray, vmax_m: float, colormap: str = "turbo") -> np.ndarray:
     """RGB colours (N, 3) uint8 of distances (N,) in metres on a fixed scale [0, vmax_m] (clipped)."""
+    # heavy (matplotlib): imported on use
     import matplotlib
 
     cmap = matplotlib.colormaps[colormap]
@@ -43,6 +44,7 @@ def coverage_colors(covered: np.ndarray) -> np.ndarray:
 
 def write_colored_ply(path: str | Path, points: np.ndarray, colors: np.ndarray) -> Path:
     """Write points (N, 3) in metres with RGB colours (N, 3) uint8 as a binary PLY, atomically."""
+    # heavy (open3d): imported on use
     import open3d as o3d
 
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
@@ -133,9 +135,16 @@ def save_view_png(path: str | Path, image: np.ndarray, title: str, colorbar: dic
         colorbar: ``{"vmax_m": V, "colormap": NAME}`` for a distance scale; None draws the
             covered/missed legend.
     """
+    # heavy (matplotlib): imported on use
     import matplotlib
+
+    # heavy (matplotlib): imported on use
     from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    # heavy (matplotlib): imported on use
     from matplotlib.figure import Figure
+
+    # heavy (matplotlib): imported on use
     from matplotlib.patches import Patch
 
     height, width = image.shape[:2]

@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from planner.lawnmower import structure_bounds_from_proxy
+from planner.lawnmower.lawnmower import structure_bounds_from_proxy
 from scene.camera import yaw_pitch_from_direction
 from scene.plan import Plan, PlanningError
 

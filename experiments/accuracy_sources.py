@@ -1,7 +1,7 @@
 """Where a cell's accuracy goes: the SfM model's placement in the world (the GNSS datum), its cameras'
 own errors, and what is left to the dense stage.
 
-    uavplan-study accuracy-sources study/settled/tomb/ours/gsd0.03/lowest/seed0 \\
+    uavplan-diagnose accuracy-sources study/settled/tomb/ours/gsd0.03/lowest/seed0 \\
         study/settled/tomb/ours/gsd0.03/high/seed0 --out archive/pre_p1/accuracy_sources/tomb
 
 For every finished run (``recon/sparse``, ``images/cameras.json``, ``recon/dense.ply``):
@@ -24,6 +24,7 @@ Writes ``accuracy_sources.csv`` and ``accuracy_sources.md`` into ``--out``.
 
 from __future__ import annotations
 
+import json
 import logging
 import sys
 from collections.abc import Sequence
@@ -31,9 +32,15 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import trimesh
 
+from evaluate.__main__ import load_scene_by_name, load_settings
+from evaluate.loading import load_reconstruction
+from evaluate.metrics import score_points
 from experiments.observations import SPARSE_DIR
 from experiments.runs import RunDirectoryError, out_is_a_file, tool_parser, write_findings
+from reconstruct.align import rotation_angles_deg
+from reconstruct.flight import read_flight
 
 log = logging.getLogger(__name__)
 
@@ -49,9 +56,8 @@ def camera_errors(
     the best similarity between the centres (``datum_rotation_deg``, ``datum_scale_ppm``,
     ``datum_shift_m``: how far it moves the centres' centroid) and each camera's error after it
     (``internal_rotation_*_deg``, ``internal_position_*_m``, median and p90)."""
+    # heavy (pycolmap): imported on use
     import pycolmap
-
-    from reconstruct.align import rotation_angles_deg
 
     if len(centers) < 3:
         raise RunDirectoryError(f"{len(centers)} registered cameras of the flight: too few for a similarity")
@@ -94,8 +100,8 @@ def icp_to_ground_truth(
     """The rigid 4x4 transform (world metres) that registers ``points`` to ``gt_mesh``: Open3D's
     point-to-plane ICP from ``n_points`` of the points to as many surface samples, pairs farther
     apart than ``max_distance_m`` ignored. Coordinates are taken about the points' centroid."""
+    # heavy (open3d): imported on use
     import open3d as o3d
-    import trimesh
 
     rng = np.random.default_rng(seed)
     source = points[rng.choice(len(points), min(len(points), n_points), replace=False)]
@@ -124,15 +130,9 @@ def icp_to_ground_truth(
 
 def analyse_run(run_dir: Path, icp_points: int, icp_distance_m: float) -> dict:
     """One row: the run's names, its record's accuracy, camera errors, registered accuracy."""
-    import json
 
+    # heavy (pycolmap): imported on use
     import pycolmap
-
-    from evaluate.__main__ import load_scene_by_name, load_settings
-    from evaluate.loading import load_reconstruction
-    from evaluate.metrics import score_points
-    from reconstruct.align import rotation_angles_deg
-    from reconstruct.flight import read_flight
 
     for needed in ("metrics.json", SPARSE_DIR, IMAGES_DIR, DENSE_FILE):
         if not (run_dir / needed).exists():
@@ -189,7 +189,7 @@ def summarise(frame: pd.DataFrame) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = tool_parser("uavplan-study accuracy-sources", __doc__)
+    parser = tool_parser("uavplan-diagnose accuracy-sources", __doc__)
     parser.add_argument("runs", nargs="+", type=Path, help="run directories (a cell's output with its cloud)")
     parser.add_argument("--out", type=Path, required=True, help="folder for accuracy_sources.csv and .md")
     # 1M points register in ~20 s; 3 cm keeps pairs within the clouds' error (acc95 ~3 cm) and

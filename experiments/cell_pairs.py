@@ -1,6 +1,6 @@
 """The same cells recorded twice (two machines, two proxies, two revisions), figure beside figure.
 
-    uavplan-study cell-pairs results/cells/FIRST results/cells/SECOND --out DIR
+    uavplan-diagnose cell-pairs results/cells/FIRST results/cells/SECOND --out DIR
 
 A cell of the first folder is paired with the cell of the second that has its scene, planner, seed,
 budget and GSD (``target_gsd_m``); a cell recorded in one folder only is left out. Per pair: the
@@ -83,8 +83,8 @@ def to_markdown(pairs: pd.DataFrame, names: tuple[str, str]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Command line: ``uavplan-study cell-pairs FIRST SECOND --out OUT``; returns the exit status."""
-    parser = argparse.ArgumentParser(prog="uavplan-study cell-pairs", description=__doc__.split("\n")[0])
+    """Command line: ``uavplan-diagnose cell-pairs FIRST SECOND --out OUT``; returns the exit status."""
+    parser = argparse.ArgumentParser(prog="uavplan-diagnose cell-pairs", description=__doc__.split("\n")[0])
     parser.add_argument("first", type=Path, help="record or run directory (searched recursively)")
     parser.add_argument("second", type=Path, help="the other one")
     parser.add_argument("--out", type=Path, required=True, help="directory for cell_pairs.md and .csv")

@@ -1,4 +1,6 @@
-"""``uavplan-study``: the study's tools (records, tables, fronts, figures, checks) as one command."""
+"""``uavplan-study``: the study's own tools (records, proxies, tables, fronts, figures, the noise
+floor) as one command. The diagnostics are ``uavplan-diagnose`` (``experiments.diagnose_cli``); a
+plan's interactive view is ``uavplan view``."""
 
 from __future__ import annotations
 
@@ -10,22 +12,13 @@ from pipeline.cli import dispatch
 COMMANDS = {
     "record": "experiments.record",
     "results": "experiments.results",
+    "study-plan": "experiments.study_plan",
+    "proxies": "experiments.proxies",
     "tables": "experiments.tables",
     "figures": "experiments.figures",
     "fronts": "experiments.fronts",
     "noise-floor": "experiments.noise_floor",
-    "replan": "experiments.replan",
-    "observations": "experiments.observations",
-    "depth-errors": "experiments.depth_errors",
-    "plan-stability": "experiments.plan_stability",
     "ours-plus-front": "experiments.ours_plus_front",
-    "viewer": "experiments.viewer",
-    "photo-roundtrip": "experiments.photo_roundtrip",
-    "oracle-gap": "experiments.oracle_gap",
-    "accuracy-sources": "experiments.accuracy_sources",
-    "cell-pairs": "experiments.cell_pairs",
-    "study-plan": "experiments.study_plan",
-    "proxies": "experiments.proxies",
 }
 
 

@@ -1,6 +1,6 @@
 """How accurate are a flight's depth maps, pair by pair, against the ground truth?
 
-    uavplan-study depth-errors study/default_v4/church/ours/default/seed0 \\
+    uavplan-diagnose depth-errors study/default_v4/church/ours/default/seed0 \\
         study/default_v4/church/smith/default/seed0 --views 60 --out archive/pre_p1/depth_errors/church
 
 For every run: its aligned sparse model and images are put in a fresh dense workspace, the CPU
@@ -33,10 +33,11 @@ import cv2
 import numpy as np
 import pandas as pd
 import trimesh
+from omegaconf import OmegaConf
 
 from experiments.observations import GT_REGION_FILE, SPARSE_DIR
 from experiments.runs import RunDirectoryError, read_run_config, tool_parser
-from reconstruct.dense import consistent_depth, pair_depth, partner_weights
+from reconstruct.stereo.matching import consistent_depth, pair_depth, partner_weights
 from reconstruct.workspace import View, prepare_workspace, read_views, select_partners, sparse_points_by_image
 from scene.enclosure import raycasting_scene
 from scene.io import write_text_atomic
@@ -52,6 +53,7 @@ ANGLE_BINS_DEG = (0.0, 5.0, 10.0, 15.0, 20.0, 25.0, 30.0, 40.0, 90.0)
 
 def ground_truth_depth(scene, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Depth (H, W) along the optical axis (NaN = no hit), hit points (H, W, 3), normals (H, W, 3)."""
+    # heavy (open3d): imported on use
     import open3d as o3d
 
     u, v = np.meshgrid(np.arange(view.width, dtype=np.float64), np.arange(view.height, dtype=np.float64))
@@ -125,8 +127,6 @@ def analyse_run(
 
     ``dense_overrides``: ``key=value`` dotlist on the run's ``reconstruct.dense`` settings (the
     same flight and SfM under another matcher setting, for an ablation)."""
-    from omegaconf import OmegaConf
-
     cfg = read_run_config(run_dir)
     if cfg is None:
         raise RunDirectoryError(f"{run_dir}: no .hydra/config.yaml (not a run directory)")
@@ -252,7 +252,7 @@ def summarise(pairs: pd.DataFrame) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = tool_parser("uavplan-study depth-errors", __doc__)
+    parser = tool_parser("uavplan-diagnose depth-errors", __doc__)
     parser.add_argument("runs", nargs="+", type=Path, help="run directories (a cell's output)")
     parser.add_argument(
         "--views", type=int, default=60, help="reference views per run, evenly spread (0: all)"

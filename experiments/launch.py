@@ -21,6 +21,7 @@ still fits before its deadline.
 from __future__ import annotations
 
 import subprocess
+import time
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -56,6 +57,7 @@ def launch(jobs: Iterable[Job], launcher: str = "local", n_jobs: int = 1) -> Ite
         for job in jobs:
             yield run_job(job)
     elif launcher == "joblib":
+        # heavy (joblib): imported on use
         from joblib import Parallel, delayed
 
         parallel = Parallel(
@@ -70,6 +72,7 @@ def launch(jobs: Iterable[Job], launcher: str = "local", n_jobs: int = 1) -> Ite
 
 def _ray(jobs: Iterator[Job], local_mode: bool, n_jobs: int) -> Iterator[tuple[Job, int]]:
     try:
+        # optional dependency: imported on use
         import ray
     except ImportError:
         raise ValueError("--launcher ray needs Ray: pip install -e '.[ray]'") from None
@@ -92,10 +95,10 @@ def _ray(jobs: Iterator[Job], local_mode: bool, n_jobs: int) -> Iterator[tuple[J
 
 def _slurm(jobs: Iterator[Job], n_jobs: int) -> Iterator[tuple[Job, int]]:
     try:
+        # optional dependency: imported on use
         import submitit
     except ImportError:
         raise ValueError("--launcher slurm needs submitit: pip install -e '.[slurm]'") from None
-    import time
 
     executor = submitit.AutoExecutor(folder=Path("study") / "slurm_logs")
     executor.update_parameters(timeout_min=24 * 60, cpus_per_task=2)

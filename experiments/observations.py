@@ -1,6 +1,6 @@
 """Did the plan or the reconstruction lose a surface? How closely each flight observed the ground truth.
 
-    uavplan-study observations study/default --out results/observations
+    uavplan-diagnose observations study/default --out results/observations
 
 For every run: the ground truth of its evaluation region (``eval/gt_region.ply``) is sampled evenly
 and each sample is classed like the completeness table (ground, roofs, walls, undersides). A view
@@ -78,6 +78,7 @@ def registered_image_names(sparse_dir: Path) -> set[str] | None:
     """Names of the images in the COLMAP model at ``sparse_dir``, or None if there is no model."""
     if not any((sparse_dir / f"images.{ext}").is_file() for ext in ("bin", "txt")):
         return None
+    # heavy (pycolmap): imported on use
     import pycolmap
 
     return {image.name for image in pycolmap.Reconstruction(str(sparse_dir)).images.values()}
@@ -160,9 +161,9 @@ def to_markdown(frame: pd.DataFrame, criteria: ObservationCriteria) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Command line: ``uavplan-study observations DIR... --out OUT``; returns the exit status."""
+    """Command line: ``uavplan-diagnose observations DIR... --out OUT``; returns the exit status."""
     defaults = ObservationCriteria()
-    parser = tool_parser("uavplan-study observations", __doc__, "directory for observations.md and .csv")
+    parser = tool_parser("uavplan-diagnose observations", __doc__, "directory for observations.md and .csv")
     parser.add_argument("--min-views", type=int, default=defaults.min_views)
     parser.add_argument("--max-distance-factor", type=float, default=defaults.max_distance_factor)
     parser.add_argument("--max-incidence-deg", type=float, default=defaults.max_incidence_deg)

@@ -1,7 +1,7 @@
 """The real reconstruction against its oracle ceiling, cell by cell: does the matcher rank the plans
 as a perfect one would?
 
-    uavplan-study oracle-gap multirun/<date> results/... --out archive/pre_p1/oracle_gap
+    uavplan-diagnose oracle-gap multirun/<date> results/... --out archive/pre_p1/oracle_gap
 
 Every cell scored with ``reconstruct.oracle_beside`` carries ``oracle_*`` fields in its
 ``metrics.json``: the ground truth ray-cast at the registered SfM cameras with the stereo noise
@@ -94,8 +94,8 @@ def to_markdown(cells: pd.DataFrame, summary: dict[str, dict]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Command line: ``uavplan-study oracle-gap DIR... --out OUT``; returns the exit status."""
-    parser = tool_parser("uavplan-study oracle-gap", __doc__, "directory for oracle_gap.md and .csv")
+    """Command line: ``uavplan-diagnose oracle-gap DIR... --out OUT``; returns the exit status."""
+    parser = tool_parser("uavplan-diagnose oracle-gap", __doc__, "directory for oracle_gap.md and .csv")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     if out_is_a_file(args.out):

@@ -28,7 +28,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
-from experiments.fronts import ACCURACY, COMPLETENESS, figure_legend
+from experiments.front_core import ACCURACY, COMPLETENESS
+from experiments.fronts import figure_legend
 from experiments.runs import (
     RunDirectoryError,
     load_runs,

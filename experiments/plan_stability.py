@@ -1,6 +1,6 @@
 """Planner stability: how much a plan changes when its proxy moves by the run-to-run amount.
 
-    uavplan-study plan-stability --proxy PROXY.ply --out OUT -- experiment=smoke scene=tomb
+    uavplan-diagnose plan-stability --proxy PROXY.ply --out OUT -- experiment=smoke scene=tomb
 
 Two default-mode reconstructions of the same exploratory flight give proxies a few millimetres apart
 (the smoke tomb: median 3.1 mm, 90th percentile 11 mm between the two surfaces; see
@@ -27,15 +27,19 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+import hydra
 import numpy as np
 import pandas as pd
 import trimesh
+from hydra import compose, initialize_config_dir
 from scipy.spatial import cKDTree
 
 from evaluate.metrics import SURFACE_CLASSES
 from evaluate.settings import EvaluationSettings
 from experiments.runs import method_name, tool_parser
 from pipeline.forecast import ObservationCriteria, observation_shares
+from pipeline.settings import planner_params
+from scene.camera import Intrinsics
 from scene.io import write_text_atomic
 
 log = logging.getLogger(__name__)
@@ -61,8 +65,6 @@ def view_shift_m(views: np.ndarray, reference: np.ndarray) -> np.ndarray:
 
 def compose_config(overrides: Sequence[str]):
     """The composed run config for ``overrides`` (as ``python run.py OVERRIDES`` would see it)."""
-    from hydra import compose, initialize_config_dir
-
     with initialize_config_dir(str(CONF_DIR), version_base=None):
         return compose("config", overrides=list(overrides))
 
@@ -77,11 +79,6 @@ def plan_rows(
 ) -> list[dict]:
     """One row per plan of ``planner``: the unperturbed proxy (``perturbation`` -1), then ``repeats``
     perturbed copies (``perturbation`` 0..repeats-1)."""
-    import hydra
-
-    from pipeline.settings import planner_params
-    from scene.camera import Intrinsics
-
     cfg = compose_config([*overrides, f"planner={planner}"])
     intrinsics = Intrinsics(**cfg.camera)
     params = planner_params(cfg)
@@ -156,7 +153,7 @@ def to_markdown(frame: pd.DataFrame, proxy_path: str, sigma_mm: float, criteria:
 def main(argv: Sequence[str] | None = None) -> int:
     """Command line; returns the exit status."""
     defaults = ObservationCriteria()
-    parser = tool_parser("uavplan-study plan-stability", __doc__)
+    parser = tool_parser("uavplan-diagnose plan-stability", __doc__)
     parser.add_argument(
         "--proxy", type=Path, required=True, help="proxy mesh (e.g. cache/exploration/<key>/proxy.ply)"
     )

@@ -20,17 +20,27 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from hydra import compose, initialize_config_dir
+
 from experiments.record import commit_record
 from pipeline.protocol import STUDY_SCENES
+from pipeline.proxy import (
+    ProxyInputs,
+    build_exploration_proxy,
+    exploration_cache_key,
+    load_proxy,
+    mesh_fingerprint,
+)
 from pipeline.proxy_bundle import BUNDLES, MANIFEST, BundleError, bundle_dir, check_bundle, export_bundle
+from pipeline.settings import cell_settings
+from scene.proxy_mesh import PROXY_CLOUD_KEY
+from scene.registry import load_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def compose_cell(scene: str, seed: int, experiment: str = "default", overrides: Sequence[str] = ()):
     """The composed run config of ``scene`` at ``seed`` with the study's scene overrides."""
-    from hydra import compose, initialize_config_dir
-
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base=None):
         return compose(
             "config",
@@ -51,17 +61,6 @@ def build_bundle(
 
     Returns:
         (the bundle folder, its manifest)."""
-    from pipeline.proxy import (
-        ProxyInputs,
-        build_exploration_proxy,
-        exploration_cache_key,
-        load_proxy,
-        mesh_fingerprint,
-    )
-    from pipeline.settings import cell_settings
-    from scene.proxy_mesh import PROXY_CLOUD_KEY
-    from scene.registry import load_scene
-
     cfg = compose_cell(scene, seed, experiment, overrides)
     settings = cell_settings(cfg)
     loaded = load_scene(cfg.scene, cache_dir=cfg.cache_dir)

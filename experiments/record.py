@@ -37,9 +37,11 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+from hydra import compose, initialize_config_dir
+
 from experiments.launch import Job, launch
 from experiments.runs import RunDirectoryError, read_metrics
-from pipeline.protocol import PROTOCOL
+from pipeline.protocol import PROTOCOL, planner_version
 from planner.budget import DEFAULT_LEVEL, level_rank
 from scene.io import write_json_atomic, write_text_atomic
 
@@ -171,8 +173,6 @@ def parse_cell(text: str) -> Cell:
 
 def configured_gsd_m(overrides: Sequence[str] = ()) -> float:
     """``survey.target_gsd_m`` of ``run.py`` with ``overrides`` (a preset may set it)."""
-    from hydra import compose, initialize_config_dir
-
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base=None):
         return float(compose("config", overrides=list(overrides)).survey.target_gsd_m)
 
@@ -264,6 +264,199 @@ class QueueLimits:
     margin: float = 1.5
 
 
+def _queue_head(revision: str) -> str:
+    """The short commit ``revision`` names.
+
+    Raises:
+        ValueError: ``revision`` names no commit."""
+    found = subprocess.run(
+        ["git", "-C", str(ROOT), "rev-parse", "--verify", "--quiet", "--short", f"{revision}^{{commit}}"],
+        capture_output=True,
+        text=True,
+    )
+    if found.returncode != 0:
+        raise ValueError(f"--revision {revision!r} names no commit of {ROOT}")
+    return found.stdout.strip()
+
+
+def _check_queue_records(
+    revision: str, head: str, commit: bool, cells: list[tuple], preset: str, records_root: Path
+):
+    """Refuse records git would ignore (when committing); note uncommitted changes the cells will
+    not run.
+
+    Raises:
+        ValueError: a record would be ignored by git."""
+    if commit:
+        records = [
+            os.path.relpath(record_dir(preset, *cell[:5], root=records_root) / name, ROOT)
+            for cell in cells
+            for name in ("metrics.json", "plan.json")
+        ]
+        ignored = subprocess.run(
+            ["git", "-C", str(ROOT), "check-ignore", "--stdin"],
+            input="\n".join(records),
+            capture_output=True,
+            text=True,
+        ).stdout.split()
+        if ignored:
+            raise ValueError(
+                f"{ignored[0]} is ignored by git (.gitignore): "
+                "the queue's records could not be committed; nothing run"
+            )
+    dirty = (
+        revision == "HEAD"
+        and subprocess.run(
+            ["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no"],
+            check=True,
+            capture_output=True,
+            text=True,
+        ).stdout.strip()
+    )
+    if dirty:
+        print(
+            f"note: the cells run the committed code at {head}; uncommitted changes are not in them",
+            flush=True,
+        )
+
+
+@dataclass
+class _QueueRun:
+    """One ``run_queue`` in progress: what it runs, from where, and where it stands."""
+
+    preset: str
+    study: Path
+    overrides: Sequence[str]
+    commit: bool
+    head: str
+    proxies: dict[tuple[str, int], str]
+    limits: QueueLimits
+    records_root: Path
+    require_bundle: bool
+    tree: Path
+    env: dict[str, str]
+    queue: collections.deque
+    stopped: bool = False
+    failed: int = 0
+
+    @staticmethod
+    def name_of(cell: tuple) -> str:
+        scene, planner, seed, budget, gsd_m, _ = cell
+        return f"{scene}/{planner}/{seed}/{budget}/{gsd_m:g}"
+
+    def run_dir_of(self, cell: tuple) -> Path:
+        return (Path(self.study) / cell_path(*cell[:5])).resolve()
+
+    def out_of_time_or_disk(self, cell: tuple) -> bool:
+        """Stop the queue (say why) when ``cell`` would end past the deadline or the disk is low."""
+        limits, name, run_dir = self.limits, self.name_of(cell), self.run_dir_of(cell)
+        estimate_h = (limits.estimates_h or {}).get(cell[:5], limits.default_estimate_h)
+        if limits.deadline is not None and time.time() + limits.margin * estimate_h * 3600 > limits.deadline:
+            left_min = max(limits.deadline - time.time(), 0.0) / 60.0
+            print(
+                f"{name}: estimated {estimate_h * 60:.0f} min, {left_min:.0f} min left before the "
+                "deadline: queue stopped (the same command resumes it)",
+                flush=True,
+            )
+            self.stopped = True
+            return True
+        if limits.min_free_gb and free_gb(run_dir) < limits.min_free_gb:
+            print(
+                f"{name}: {free_gb(run_dir):.1f} GB free under {run_dir.parent}, below the queue's "
+                f"{limits.min_free_gb:g} GB: queue stopped (free disk, or lower --min-free-gb)",
+                flush=True,
+            )
+            self.stopped, self.failed = True, self.failed + 1
+            return True
+        return False
+
+    def jobs(self) -> Iterator[Job]:
+        """The next cell to start, pulled by the launcher when a worker is free; none past
+        the deadline or below the disk floor."""
+        while self.queue and not self.stopped:
+            cell, attempt = self.queue.popleft()
+            name, run_dir = self.name_of(cell), self.run_dir_of(cell)
+            if self.out_of_time_or_disk(cell):
+                return
+            scene, planner, seed, budget, gsd_m, cell_overrides = cell
+            command = [
+                sys.executable,
+                "run.py",
+                f"scene={scene}",
+                f"planner={planner}",
+                f"seed={seed}",
+                f"budget={budget}",
+                f"survey.target_gsd_m={gsd_m!r}",
+                f"hydra.run.dir={run_dir}",
+                *cell_overrides,
+                *self.overrides,
+            ]
+            shutil.rmtree(run_dir, ignore_errors=True)
+            print(f"{name}: running at {self.head} into {run_dir} (attempt {attempt})", flush=True)
+            yield Job((cell, attempt), command, self.tree, self.env)
+
+    def take(self, job: Job, code) -> None:
+        """Record (and commit) a finished cell; queue it again, or stop the queue, as it says."""
+        cell, attempt = job.key
+        name, run_dir = self.name_of(cell), self.run_dir_of(cell)
+        scene, seed = cell[0], int(cell[2])
+        limits = self.limits
+        retry = attempt < max(limits.attempts, 1)
+        if not (run_dir / "metrics.json").is_file():
+            print(f"{name}: exit {code} and no metrics.json: nothing recorded", flush=True)
+            if retry:
+                self.queue.appendleft((cell, attempt + 1))
+            else:
+                self.failed += 1
+                if limits.prune:
+                    shutil.rmtree(run_dir, ignore_errors=True)
+            return
+        metrics = read_metrics(run_dir)
+        metrics["queue_attempt"] = attempt  # a failure retried in a later run if it was the first
+        write_json_atomic(run_dir / "metrics.json", metrics)
+        other = other_proxy(self.proxies, metrics)
+        folder = self.preset if other is None else proxy_preset(self.preset, other)
+        dest, metrics = record_cell(run_dir, folder, self.records_root)
+        ok = metrics.get("status", "ok") == "ok"
+        line = summary_line(metrics) + f" (code {self.head}, protocol {metrics.get('protocol')})"
+        print(line, flush=True)
+        if self.commit:
+            commit_with_retry(dest, line)
+        if other is not None:
+            expected = self.proxies[(scene, seed)]
+            print(
+                f"error: {scene} / seed {seed}: this cell planned on proxy {other[:8]}, the group's "
+                f"recorded cells on {expected[:8]}; recorded under {os.path.relpath(dest, ROOT)}, "
+                "queue stopped "
+                "(run the group again on one proxy, or restore the proxy it planned on)",
+                flush=True,
+            )
+            self.stopped, self.failed = True, self.failed + 1
+            return
+        if (
+            self.require_bundle
+            and metrics.get("proxy_source") == "reconstruction"
+            and not metrics.get("proxy_bundle")
+        ):
+            print(
+                f"error: {name} planned on a proxy explored here, not on the committed one: the "
+                "exploration's settings no longer match its key; queue stopped (restore the "
+                "setting, or rebuild the proxy: uavplan-study proxies build "
+                f"{scene}/{seed} --force --commit)",
+                flush=True,
+            )
+            self.stopped, self.failed = True, self.failed + 1
+            return
+        if ok and metrics.get("proxy_fingerprint"):
+            self.proxies.setdefault((scene, seed), str(metrics["proxy_fingerprint"]))
+        if not ok and retry:
+            self.queue.appendleft((cell, attempt + 1))
+            return
+        self.failed += not ok
+        if limits.prune:
+            shutil.rmtree(run_dir, ignore_errors=True)
+
+
 def run_queue(
     cells: Sequence[Cell | tuple],
     preset: str,
@@ -302,16 +495,7 @@ def run_queue(
 
     Raises:
         ValueError: ``revision`` names no commit of the repository."""
-    from pipeline.protocol import planner_version
-
-    found = subprocess.run(
-        ["git", "-C", str(ROOT), "rev-parse", "--verify", "--quiet", "--short", f"{revision}^{{commit}}"],
-        capture_output=True,
-        text=True,
-    )
-    if found.returncode != 0:
-        raise ValueError(f"--revision {revision!r} names no commit of {ROOT}")
-    head = found.stdout.strip()
+    head = _queue_head(revision)
     default_gsd = None
     if any(len(cell) < 5 or cell[4] is None for cell in cells):
         default_gsd = configured_gsd_m([o for o in overrides if not o.startswith("hydra")])
@@ -322,38 +506,7 @@ def run_queue(
         return (*cell[:4], gsd_m, tuple(cell[5]) if len(cell) > 5 else ())
 
     cells = [complete(cell) for cell in cells]
-    if commit:
-        records = [
-            os.path.relpath(record_dir(preset, *cell[:5], root=records_root) / name, ROOT)
-            for cell in cells
-            for name in ("metrics.json", "plan.json")
-        ]
-        ignored = subprocess.run(
-            ["git", "-C", str(ROOT), "check-ignore", "--stdin"],
-            input="\n".join(records),
-            capture_output=True,
-            text=True,
-        ).stdout.split()
-        if ignored:
-            raise ValueError(
-                f"{ignored[0]} is ignored by git (.gitignore): "
-                "the queue's records could not be committed; nothing run"
-            )
-    dirty = (
-        revision == "HEAD"
-        and subprocess.run(
-            ["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no"],
-            check=True,
-            capture_output=True,
-            text=True,
-        ).stdout.strip()
-    )
-    if dirty:
-        print(
-            f"note: the cells run the committed code at {head}; uncommitted changes are not in them",
-            flush=True,
-        )
-    proxies = dict(proxies or {})
+    _check_queue_records(revision, head, commit, cells, preset, records_root)
     # A cluster's workers reach the worktree only on a shared file system: the study folder's.
     shared = Path(study).resolve().parent if launcher in ("ray", "slurm") else None
     with revision_worktree(head, prefix="uavplan_queue_", parent=shared) as tree:
@@ -379,122 +532,16 @@ def run_queue(
                 )
                 continue
             todo.append((scene, planner, seed, budget, gsd_m, cell_overrides))
-        queue = collections.deque((cell, 1) for cell in todo)
-        state = {"stopped": False, "failed": 0}
-
-        def name_of(cell: tuple) -> str:
-            scene, planner, seed, budget, gsd_m, _ = cell
-            return f"{scene}/{planner}/{seed}/{budget}/{gsd_m:g}"
-
-        def run_dir_of(cell: tuple) -> Path:
-            return (Path(study) / cell_path(*cell[:5])).resolve()
-
-        def jobs() -> Iterator[Job]:
-            """The next cell to start, pulled by the launcher when a worker is free; none past
-            the deadline or below the disk floor."""
-            while queue and not state["stopped"]:
-                cell, attempt = queue.popleft()
-                name, run_dir = name_of(cell), run_dir_of(cell)
-                estimate_h = (limits.estimates_h or {}).get(cell[:5], limits.default_estimate_h)
-                if (
-                    limits.deadline is not None
-                    and time.time() + limits.margin * estimate_h * 3600 > limits.deadline
-                ):
-                    left_min = max(limits.deadline - time.time(), 0.0) / 60.0
-                    print(
-                        f"{name}: estimated {estimate_h * 60:.0f} min, {left_min:.0f} min left before the "
-                        "deadline: queue stopped (the same command resumes it)",
-                        flush=True,
-                    )
-                    state["stopped"] = True
-                    return
-                if limits.min_free_gb and free_gb(run_dir) < limits.min_free_gb:
-                    print(
-                        f"{name}: {free_gb(run_dir):.1f} GB free under {run_dir.parent}, below the queue's "
-                        f"{limits.min_free_gb:g} GB: queue stopped (free disk, or lower --min-free-gb)",
-                        flush=True,
-                    )
-                    state["stopped"], state["failed"] = True, state["failed"] + 1
-                    return
-                scene, planner, seed, budget, gsd_m, cell_overrides = cell
-                command = [
-                    sys.executable,
-                    "run.py",
-                    f"scene={scene}",
-                    f"planner={planner}",
-                    f"seed={seed}",
-                    f"budget={budget}",
-                    f"survey.target_gsd_m={gsd_m!r}",
-                    f"hydra.run.dir={run_dir}",
-                    *cell_overrides,
-                    *overrides,
-                ]
-                shutil.rmtree(run_dir, ignore_errors=True)
-                print(f"{name}: running at {head} into {run_dir} (attempt {attempt})", flush=True)
-                yield Job((cell, attempt), command, tree, env)
-
-        while queue and not state["stopped"]:
-            for job, code in launch(jobs(), launcher, n_jobs):
-                cell, attempt = job.key
-                name, run_dir = name_of(cell), run_dir_of(cell)
-                scene, seed = cell[0], int(cell[2])
-                retry = attempt < max(limits.attempts, 1)
-                if not (run_dir / "metrics.json").is_file():
-                    print(f"{name}: exit {code} and no metrics.json: nothing recorded", flush=True)
-                    if retry:
-                        queue.appendleft((cell, attempt + 1))
-                    else:
-                        state["failed"] += 1
-                        if limits.prune:
-                            shutil.rmtree(run_dir, ignore_errors=True)
-                    continue
-                metrics = read_metrics(run_dir)
-                metrics["queue_attempt"] = attempt  # a failure retried in a later run if it was the first
-                write_json_atomic(run_dir / "metrics.json", metrics)
-                other = other_proxy(proxies, metrics)
-                folder = preset if other is None else proxy_preset(preset, other)
-                dest, metrics = record_cell(run_dir, folder, records_root)
-                ok = metrics.get("status", "ok") == "ok"
-                line = summary_line(metrics) + f" (code {head}, protocol {metrics.get('protocol')})"
-                print(line, flush=True)
-                if commit:
-                    commit_with_retry(dest, line)
-                if other is not None:
-                    expected = proxies[(scene, seed)]
-                    print(
-                        f"error: {scene} / seed {seed}: this cell planned on proxy {other[:8]}, the group's "
-                        f"recorded cells on {expected[:8]}; recorded under {os.path.relpath(dest, ROOT)}, "
-                        "queue stopped "
-                        "(run the group again on one proxy, or restore the proxy it planned on)",
-                        flush=True,
-                    )
-                    state["stopped"], state["failed"] = True, state["failed"] + 1
-                    continue
-                if (
-                    require_bundle
-                    and metrics.get("proxy_source") == "reconstruction"
-                    and not metrics.get("proxy_bundle")
-                ):
-                    print(
-                        f"error: {name} planned on a proxy explored here, not on the committed one: the "
-                        "exploration's settings no longer match its key; queue stopped (restore the "
-                        "setting, or rebuild the proxy: uavplan-study proxies build "
-                        f"{scene}/{seed} --force --commit)",
-                        flush=True,
-                    )
-                    state["stopped"], state["failed"] = True, state["failed"] + 1
-                    continue
-                if ok and metrics.get("proxy_fingerprint"):
-                    proxies.setdefault((scene, seed), str(metrics["proxy_fingerprint"]))
-                if not ok and retry:
-                    queue.appendleft((cell, attempt + 1))
-                    continue
-                state["failed"] += not ok
-                if limits.prune:
-                    shutil.rmtree(run_dir, ignore_errors=True)
+        run = _QueueRun(
+            preset, study, overrides, commit, head, dict(proxies or {}), limits, records_root,
+            require_bundle, tree, env, collections.deque((cell, 1) for cell in todo),
+        )  # fmt: skip
+        while run.queue and not run.stopped:
+            for job, code in launch(run.jobs(), launcher, n_jobs):
+                run.take(job, code)
     if status is not None:
-        status["stopped"] = state["stopped"]
-    return state["failed"]
+        status["stopped"] = run.stopped
+    return run.failed
 
 
 def other_proxy(proxies: dict[tuple[str, int], str], metrics: dict) -> str | None:

@@ -1,6 +1,6 @@
 """Re-plan a recorded cell at one or more code revisions and compare the plans with the record.
 
-    uavplan-study replan results/cells/study/church/smith/default/seed0 \\
+    uavplan-diagnose replan results/cells/study/church/smith/default/seed0 \\
         --revision 00514f4 fb9b5f7
 
 Answers "does this code change alter that recorded cell?" without flying it again. The record's
@@ -51,7 +51,9 @@ PROXY_IDENTITY = ("proxy_n_sparse_points", "proxy_n_dense_points", "proxy_proxy_
 REL_TOL = 1e-9
 
 # Runs in the revision's tree (cwd), so every import is that revision's. A ``-c`` string rather than
-# a file of this module: an older revision's tree does not hold this module.
+# a file of this module: an older revision's tree does not hold this module. It needs a revision with
+# the pipeline package and the drone model (``pipeline.proxy``, ``pipeline.settings``,
+# ``drone.model``); nothing imports ``run.py``, the Hydra entry point alone.
 CHILD = r"""
 import json, sys, time
 from pathlib import Path
@@ -63,18 +65,16 @@ from scene.camera import Intrinsics
 from scene.plan import write_plan
 from scene.registry import load_scene
 
-try:  # the pipeline package and the drone model
-    from drone.model import DroneSettings, flight_summary
-    from pipeline.proxy import ProxyInputs, proxy_stage
-    from pipeline.settings import planner_setup
+from drone.model import DroneSettings, flight_summary
+from pipeline.proxy import ProxyInputs, proxy_stage
+from pipeline.settings import planner_setup
 
-    def obtain_proxy(scene, intrinsics, cfg, record):
-        proxy, fields = proxy_stage(scene, intrinsics, ProxyInputs.of(cfg))
-        record.update(fields)
-        return proxy
-except ImportError:  # a revision from before them: run.py held the stages, mission/ the drone
-    from mission.flight_time import DroneSettings, flight_summary
-    from run import obtain_proxy, planner_setup
+
+def obtain_proxy(scene, intrinsics, cfg, record):
+    proxy, fields = proxy_stage(scene, intrinsics, ProxyInputs.of(cfg))
+    record.update(fields)
+    return proxy
+
 
 overrides, out = json.loads(sys.argv[1]), Path(sys.argv[2])
 with initialize_config_dir(config_dir=str(Path("conf").resolve()), version_base=None):

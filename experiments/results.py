@@ -33,13 +33,24 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import pandas as pd
+from hydra.errors import HydraException
+from omegaconf.errors import OmegaConfBaseException
 
 from evaluate.record import git
-from experiments.fronts import DEFAULT_AT_IMAGES, DEFAULT_TARGETS_PCT, on_axis, write_fronts
+from experiments.front_core import DEFAULT_AT_IMAGES, DEFAULT_TARGETS_PCT, on_axis
+from experiments.fronts import write_fronts
+from experiments.noise_floor import load_repeats, noise_floor, summarise_repeats
 from experiments.runs import RunDirectoryError, load_runs, method_sort_key, runs_frame, scene_name
-from experiments.study_plan import STUDY_PRESET
+from experiments.study_plan import (
+    PAST_RECORDS,
+    STUDY_PRESET,
+    past_cell_hours,
+    plan_table,
+    recorded_specs,
+    study_cells,
+)
 from experiments.tables import code_provenance, tables_from_runs, write_tables
-from pipeline.protocol import PROTOCOL
+from pipeline.protocol import PROTOCOL, planner_version
 from planner.budget import DEFAULT_LEVEL, level_rank
 from scene.io import write_text_atomic
 
@@ -64,10 +75,6 @@ def current_records(runs: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
     """(the records of the current protocol and of their planner's current version, the others).
 
     A planner whose config the repository does not have (one from outside) counts at version None."""
-    from hydra.errors import HydraException
-    from omegaconf.errors import OmegaConfBaseException
-
-    from pipeline.protocol import planner_version
 
     def version(planner: str) -> int | None:
         try:
@@ -178,8 +185,6 @@ def study_cost(runs: pd.DataFrame) -> list[str]:
 def study_progress() -> list[str]:
     """The README's progress lines: per phase of the study plan, its cells, those recorded at the
     current protocol and planner versions, and the cell-hours left (estimated from the records)."""
-    from experiments.study_plan import PAST_RECORDS, past_cell_hours, plan_table, recorded_specs, study_cells
-
     cells = study_cells()
     table = plan_table(cells, past_cell_hours(PAST_RECORDS), recorded_specs(STUDY_PRESET, cells))
     return [
@@ -250,8 +255,6 @@ def study_noise_floor(noise_dir: Path) -> dict[str, float] | None:
     """The noise floor of a study's repeats (``results/cells/<study>_noise/rep<k>/``, the study plan's
     phase 3; ``experiments.noise_floor``) at the current protocol, or None while no cell has two
     recorded repeats."""
-    from experiments.noise_floor import load_repeats, noise_floor, summarise_repeats
-
     if not Path(noise_dir).is_dir():
         return None
     try:

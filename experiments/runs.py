@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import os
 import sys
 from collections.abc import Iterable, Mapping
@@ -18,9 +17,13 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import trimesh
+from omegaconf import OmegaConf
 
 from planner.budget import DEFAULT_LEVEL, LEVELS, level_rank
 from scene.camera import Intrinsics
+from scene.io import write_text_atomic
+from scene.plan import read_viewpoints
 
 log = logging.getLogger(__name__)
 
@@ -251,7 +254,6 @@ def read_run_config(run_dir: str | Path):
     path = Path(run_dir) / CONFIG_FILE
     if not path.is_file():
         return None
-    from omegaconf import OmegaConf
 
     try:
         return OmegaConf.load(path)
@@ -274,8 +276,6 @@ def read_plan_record(run_dir: str | Path) -> dict:
 
 def read_run_viewpoints(run_dir: str | Path) -> tuple[np.ndarray, list[str]] | None:
     """The run's planned viewpoints ((V, 5) array in flight order, kinds), or None if it has no plan."""
-    from scene.plan import read_viewpoints
-
     path = Path(run_dir) / VIEWPOINTS_FILE
     if not path.is_file():
         return None
@@ -329,15 +329,6 @@ def recorded_path(run: Run, *names: str, file_name: str | None = None) -> Path |
     return None
 
 
-def finite_or_nan(value) -> float:
-    """``value`` as a float, NaN for None, strings and non-finite numbers."""
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        return math.nan
-    return number if math.isfinite(number) else math.nan
-
-
 # Keys of ``metrics['paths']`` (or ``plan.json``) that name meshes a figure can draw under a flight.
 # (evaluate.run records ``gt_mesh_path``: the ground truth cut to the evaluation region; run.py
 # records the exploration cache entry holding ``proxy.ply`` as ``proxy_entry``.)
@@ -372,7 +363,6 @@ def run_scene_mesh(run: Run, prefer: str = "ground_truth"):
 
 
 def _load_mesh_file(path: Path):
-    import trimesh
 
     mesh = trimesh.load(path, force="mesh", process=False)
     return mesh if len(getattr(mesh, "faces", ())) else None
@@ -388,6 +378,7 @@ def _ground_truth_mesh(run: Run):
     if config is None or "scene" not in config:
         return None
     try:
+        # optional dependency: imported on use
         from scene.registry import load_scene
     except ImportError:
         log.info("scene.registry is not available: no ground-truth mesh for %s", run.run_dir)
@@ -428,8 +419,6 @@ def tool_parser(prog: str, doc: str, out_help: str | None = None) -> argparse.Ar
 def write_findings(out: Path, stem: str, frame: pd.DataFrame, title: str, text: str) -> None:
     """A tool's findings into ``out``, each file atomically: ``<stem>.csv`` (``frame``, full
     precision) and ``<stem>.md`` (``# title``, then ``text``); ``text`` is printed too."""
-    from scene.io import write_text_atomic
-
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / f"{stem}.csv", frame.to_csv(index=False))
     write_text_atomic(out / f"{stem}.md", f"# {title}\n\n{text}")

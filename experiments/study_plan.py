@@ -32,7 +32,12 @@ The phases, each a complete answer before the next starts:
 from __future__ import annotations
 
 import argparse
+import datetime as dt
+import json
+import os
+import subprocess
 import sys
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,7 +46,8 @@ import pandas as pd
 
 from experiments.launch import LAUNCHERS
 from experiments.runs import RunDirectoryError, load_runs, runs_frame
-from pipeline.protocol import PROTOCOL, STUDY_SCENES
+from pipeline.protocol import PROTOCOL, STUDY_SCENES, planner_version
+from pipeline.proxy_bundle import MANIFEST, bundle_dir
 from planner.budget import DEFAULT_LEVEL, level_rank
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -226,8 +232,8 @@ def plan_table(cells: Sequence[StudyCell], past: pd.DataFrame, recorded: set[str
 def recorded_specs(preset: str, cells: Sequence[StudyCell]) -> set[str]:
     """The cells of ``cells`` whose record under ``results/cells/<preset>`` (a repeat's under its own
     folder) counts: of the current protocol and of its planner's current version."""
+    # a test replaces it on its module: imported on use
     from experiments.record import current_record, record_dir
-    from pipeline.protocol import planner_version
 
     versions = {planner: planner_version(planner) for planner in {c.planner for c in cells}}
     return {
@@ -243,8 +249,8 @@ def recorded_specs(preset: str, cells: Sequence[StudyCell]) -> set[str]:
 
 def recorded_fields(preset: str, cells: Sequence[StudyCell], key: str) -> dict[str, str]:
     """``metrics.json``'s ``key`` of every recorded cell of ``cells``, by spec ("" where it has none)."""
-    import json
 
+    # a test replaces it on its module: imported on use
     from experiments.record import record_dir
 
     values = {}
@@ -289,13 +295,9 @@ def ensure_bundles(
     scene and seed of ``cells`` that has none at the current protocol, from a worktree of
     ``revision``; none is started that would not finish, with ``then_hours`` of cells after it,
     before ``deadline``. Returns the scenes and seeds still without one."""
-    import json
-    import os
-    import subprocess
-    import time
 
+    # a test replaces it on its module: imported on use
     from experiments.record import commit_with_retry, revision_worktree
-    from pipeline.proxy_bundle import MANIFEST, bundle_dir
 
     wanted = list(dict.fromkeys((c.scene, c.seed) for c in cells))
 
@@ -344,6 +346,7 @@ def run_cells(
     repeat with a stage cache of its own), each scene and seed on its committed proxy, within
     ``limits`` (``experiments.record.QueueLimits``), on ``launcher`` with ``n_jobs`` cells at once
     (``experiments.launch``). Returns the number of failed cells."""
+    # a test replaces it on its module: imported on use
     from experiments.record import QueueLimits, run_queue
 
     limits = limits or QueueLimits()
@@ -409,7 +412,6 @@ def run_cells(
 
 
 def time_left_h(deadline: float) -> float:
-    import time
 
     return (deadline - time.time()) / 3600.0
 
@@ -419,8 +421,6 @@ def parse_until(text: str, now=None) -> float:
 
     Raises:
         ValueError: neither form."""
-    import datetime as dt
-
     now = now or dt.datetime.now()
     try:
         clock = dt.datetime.strptime(text, "%H:%M").time()
@@ -508,6 +508,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"note: {scene} / seed {seed} planned on {len(counts)} proxies ({listed})")
     if not args.run:
         return 0
+    # a test replaces it on its module: imported on use
     from experiments.record import QueueLimits
 
     limits = QueueLimits(

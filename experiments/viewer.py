@@ -1,6 +1,6 @@
 """An interactive 3-D view of a plan as ONE self-contained HTML file (opens offline in any browser).
 
-    uavplan-study viewer outputs/tomb/ours/default/seed0/2026-11-23_06-00-00 --out plan.html
+    uavplan view outputs/tomb/ours/default/seed0/2026-11-23_06-00-00 --out plan.html
 
 shows the viewpoints (coloured by kind, hover for index, pose and kind), each camera's frustum
 (from the run's intrinsics), the trajectory in flight order and the ground-truth or proxy mesh,
@@ -16,8 +16,9 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
-from experiments.figures import decimate_mesh, kind_colour
+from experiments.flight_figures import decimate_mesh, kind_colour
 from experiments.runs import (
     METRICS_FILE,
     Run,
@@ -92,8 +93,6 @@ MAX_BROWSER_VERTICES = 65_000
 def browser_mesh(mesh, max_faces: int = 60_000):
     """``mesh`` with duplicate vertices merged, at most ``max_faces`` triangles and fewer than
     ``MAX_BROWSER_VERTICES`` vertices (quadric decimation where needed)."""
-    import trimesh
-
     merged = trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), process=True)
     target = int(max_faces)
     while True:
@@ -133,6 +132,7 @@ def build_plan_figure(
         ``plotly.graph_objects.Figure``; the viewpoint trace of kind ``k`` is named ``k`` and holds
         the positions as plain lists (rounded to 0.1 mm).
     """
+    # heavy (plotly): imported on use
     import plotly.graph_objects as go
 
     vps = validate_viewpoint_array(viewpoints)
@@ -272,8 +272,8 @@ def write_viewer(
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Command line: ``uavplan-study viewer RUN_DIR [--out plan.html]``; returns the exit status."""
-    parser = argparse.ArgumentParser(prog="uavplan-study viewer", description=__doc__.split("\n")[0])
+    """Command line: ``uavplan view RUN_DIR [--out plan.html]``; returns the exit status."""
+    parser = argparse.ArgumentParser(prog="uavplan view", description=__doc__.split("\n")[0])
     parser.add_argument("run_dir", type=Path, help="a run directory (with plan/viewpoints.csv)")
     parser.add_argument("--out", type=Path, help="HTML file to write (default: RUN_DIR/plan.html)")
     parser.add_argument("--mesh", choices=("ground_truth", "proxy", "none"), default="ground_truth")

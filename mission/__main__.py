@@ -14,6 +14,10 @@ import argparse
 import sys
 from pathlib import Path
 
+from mission.export import default_settings, export_mission, run_settings
+from mission.geo import MissionError, SurveyOrigin
+from scene.plan import read_viewpoints
+
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="uavplan-mission", description=__doc__.split("\n")[0])
@@ -35,9 +39,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def export(args: argparse.Namespace) -> int:
-    from mission.export import default_settings, export_mission, run_settings
-    from mission.geo import MissionError, SurveyOrigin
-    from scene.plan import read_viewpoints
 
     if args.plan.is_dir():
         csv_path = args.plan / "plan" / "viewpoints.csv"

@@ -27,8 +27,17 @@ PAYLOAD_ENUM = 52
 TEMPLATE_KML = "wpmz/template.kml"
 WAYLINES_WPML = "wpmz/waylines.wpml"
 
-ET.register_namespace("", KML_NS)
-ET.register_namespace("wpml", WPML_NS)
+
+
+def _register_namespaces() -> None:
+    """KML as the default namespace and ``wpml:`` for DJI's, as DJI's controllers read them.
+
+    ElementTree's prefixes are global: a library that registers its own default namespace after
+    this module was imported (pycollada does, for Collada meshes) would otherwise write every KML
+    tag as ``ns0:``. So they are set again right before each file is written.
+    """
+    ET.register_namespace("", KML_NS)
+    ET.register_namespace("wpml", WPML_NS)
 
 
 def _k(tag: str) -> str:
@@ -157,6 +166,7 @@ def _document(mission: Mission, flight: Flight, executable: bool) -> bytes:
     for index, i in enumerate(range(flight.start, flight.stop)):
         _placemark(folder, mission, i, index, executable)
     ET.indent(kml)
+    _register_namespaces()
     return ET.tostring(kml, encoding="utf-8", xml_declaration=True)
 
 

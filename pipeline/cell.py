@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Mapping
+from dataclasses import replace
 from pathlib import Path
 
 import hydra
@@ -22,14 +23,24 @@ import numpy as np
 import trimesh
 from omegaconf import DictConfig, OmegaConf
 
-from drone.model import DroneSettings, flight_summary
+from drone.model import DroneSettings, default_takeoff, flight_summary
+from evaluate.record import code_revision, write_metrics
+from evaluate.run import evaluate_reconstruction
 from evaluate.settings import EvaluationSettings
+from mission.envelope import keep_within_heights
+from mission.validate import validate_plan
 from pipeline.forecast import predicted_coverage
-from pipeline.protocol import protocol_fields
+from pipeline.proxy import proxy_stage
+from pipeline.settings import CellSettings, cell_settings, scene_label
 from planner.budget import DEFAULT_LEVEL
+from planner.trajectory import order_by_flight_time
+from reconstruct.pipeline import oracle_flight, reconstruct_flight
+from reconstruct.settings import ReconstructSettings
 from reconstruct.timing import cpu_seconds
+from render import render_flight
 from scene.camera import Intrinsics
 from scene.plan import Plan, write_plan
+from scene.registry import load_scene
 
 log = logging.getLogger("run")
 
@@ -40,11 +51,21 @@ class CellFailed(RuntimeError):
     """The cell failed; metrics.json records the failure (a sweep reports it and goes on)."""
 
 
-def scene_label(cfg: DictConfig) -> str:
-    """The scene's name in records: its config's name, or for ``scene=mesh`` the mesh file's stem
-    (``scene.path=cache/meshes/hall.glb`` -> ``hall``), so two users' meshes are two scenes."""
-    path = OmegaConf.select(cfg, "scene.path", default=None) if cfg.scene.name == "mesh" else None
-    return Path(str(path)).stem if path else str(cfg.scene.name)
+def planned(proxy: trimesh.Trimesh, settings: CellSettings, out_dir: Path) -> tuple[Plan, dict]:
+    """``plan_stage`` with a cell's settings (its planner, camera, drone, evaluation and GSD)."""
+    planner = settings.planner
+    return plan_stage(
+        proxy,
+        settings.intrinsics,
+        planner.target,
+        planner.params,
+        settings.seed,
+        settings.drone,
+        settings.evaluation,
+        settings.target_gsd_m,
+        out_dir,
+        planner.flight_order,
+    )
 
 
 def plan_stage(
@@ -75,9 +96,6 @@ def plan_stage(
         ``flight_order: flight_time``), the forecast, ``n_viewpoints``,
         ``flight_length_m``, ``flight_time_s``, ``n_batteries``).
     """
-    from mission.envelope import keep_within_heights
-    from mission.validate import validate_plan
-
     plan_fn = hydra.utils.get_method(target)
     start = time.perf_counter()
     plan = plan_fn(proxy, intrinsics, params, seed)
@@ -147,19 +165,14 @@ ORACLE_DIR = Path("recon") / "oracle"
 
 
 def oracle_stage(
-    scene, run_dir: Path, reconstruct_cfg: Mapping, evaluation: EvaluationSettings, seed: int
+    scene, run_dir: Path, reconstruct: ReconstructSettings, evaluation: EvaluationSettings, seed: int
 ) -> dict:
     """The matcher's ceiling of the cell's flight (``reconstruct.oracle_beside``): the oracle's cloud
     at the registered cameras of ``run_dir/recon`` in ``run_dir/recon/oracle/``, scored as the
     real one is; returns its ``oracle_*`` fields (numbers only; no error pictures)."""
-    from dataclasses import replace
-
-    from evaluate.run import evaluate_reconstruction
-    from reconstruct.pipeline import oracle_flight
-
     out = run_dir / ORACLE_DIR
     dense = oracle_flight(
-        run_dir / "recon", run_dir / "images", out, reconstruct_cfg, seed, scene.ground_truth_mesh
+        run_dir / "recon", run_dir / "images", out, reconstruct, seed, scene.ground_truth_mesh
     )
     quiet = replace(evaluation, visualise=replace(evaluation.visualise, enabled=False), export_gt_mesh=False)
     scores = evaluate_reconstruction(dense["dense_ply"], scene, quiet, out / "eval")
@@ -173,9 +186,6 @@ def ordered_by_flight_time(plan: Plan, drone: DroneSettings) -> Plan:
     """The plan's views in the order that flies them fastest (``planner.trajectory``), from the
     take-off point the missions use (``drone.takeoff_xy``, or the ground under the planner's first
     view, which then stays first); ``info`` keeps the planner's own order's flight time."""
-    from drone.model import default_takeoff
-    from planner.trajectory import order_by_flight_time
-
     vps = np.asarray(plan.viewpoints, dtype=float)
     first = 0 if drone.takeoff_xy is None else None
     order = order_by_flight_time(vps, default_takeoff(vps, drone), drone, first=first)
@@ -190,64 +200,51 @@ def ordered_by_flight_time(plan: Plan, drone: DroneSettings) -> Plan:
 def run_cell(cfg: DictConfig, run_dir: Path, record: dict) -> None:
     """Chain the stages for one (scene, planner, seed) cell; fill ``record`` as they complete.
 
-    ``record["stage"]`` names the stage running, so a failure is recorded where it happened.
+    The run config is read once, by ``cell_settings``; each stage gets its own part of the
+    settings. ``record["stage"]`` names the stage running, so a failure is recorded where it happened.
     """
-    from evaluate.run import evaluate_reconstruction
-    from pipeline.proxy import ProxyInputs, proxy_stage
-    from pipeline.settings import cell_settings
-    from reconstruct.pipeline import reconstruct_flight
-    from render import render_flight
-    from scene.registry import load_scene
-
     record["stage"] = "config"
     settings = cell_settings(cfg)  # every bad setting fails here, before the scene loads
     record.update(settings.budget)
-    record.update(protocol_fields(cfg, scene_label(cfg)))
-    seed = int(cfg.seed)
+    record.update(settings.protocol)
+    seed = settings.seed
 
     record["stage"] = "scene"
-    scene = load_scene(cfg.scene, cache_dir=cfg.cache_dir)
+    scene = load_scene(settings.scene, cache_dir=settings.cache_dir)
     # Everything a camera could see, hashed: two records of one scene on two machines are comparable
     # image for image only when these agree.
     record["scene_fingerprint"] = scene.fingerprint
 
     record["stage"] = "proxy"
-    proxy, proxy_record = proxy_stage(scene, settings.intrinsics, ProxyInputs.of(cfg))
+    proxy, proxy_record = proxy_stage(scene, settings.intrinsics, settings.proxy)
     record.update(proxy_record)
 
     record["stage"] = "plan"
-    plan, plan_record = plan_stage(
-        proxy,
-        settings.intrinsics,
-        str(cfg.planner._target_),
-        settings.planner_params,
-        seed,
-        settings.drone,
-        settings.evaluation,
-        settings.target_gsd_m,
-        run_dir / "plan",
-        str(cfg.survey.get("flight_order", "planner")),
-    )
+    plan, plan_record = planned(proxy, settings, run_dir / "plan")
     record.update(plan_record)
 
     record["stage"] = "render"
     rendered = render_flight(
-        scene, plan.viewpoints, settings.intrinsics, run_dir / "images", cfg.render, kinds=plan.kinds
+        scene, plan.viewpoints, settings.intrinsics, run_dir / "images", settings.render, kinds=plan.kinds
     )
     record.update(n_images=len(plan.viewpoints), render_time_s=rendered.render_time_s)
 
     record["stage"] = "reconstruct"
     recon = reconstruct_flight(
-        run_dir / "images", run_dir / "recon", cfg.reconstruct, seed, ground_truth=scene.ground_truth_mesh
+        run_dir / "images",
+        run_dir / "recon",
+        settings.reconstruct,
+        seed,
+        ground_truth=scene.ground_truth_mesh,
     )
     record.update({k: v for k, v in recon.items() if isinstance(v, int | float | str | bool)})
 
     record["stage"] = "evaluate"
     record.update(evaluate_reconstruction(recon["dense_ply"], scene, settings.evaluation, run_dir / "eval"))
 
-    if bool(cfg.reconstruct.get("oracle_beside", False)):
+    if settings.reconstruct.oracle_beside:
         record["stage"] = "oracle"
-        record.update(oracle_stage(scene, run_dir, cfg.reconstruct, settings.evaluation, seed))
+        record.update(oracle_stage(scene, run_dir, settings.reconstruct, settings.evaluation, seed))
     record["stage"] = "done"
 
 
@@ -275,8 +272,6 @@ def run_and_record(cfg: DictConfig, run_dir: Path) -> dict:
         CellFailed: the cell failed (its record, with ``status: failed``, the failed stage and the
             error, is written first).
     """
-    from evaluate.record import code_revision, write_metrics
-
     record = cell_record(cfg)
     log.info("run directory: %s", run_dir)
     code_revision()  # before the stages import their code

@@ -2,9 +2,10 @@
 
     uavplan run scene=tomb planner=ours           # one cell (Hydra overrides, as ``python run.py``)
     uavplan run -m scene=tomb,church planner=ours  # a sweep
+    uavplan view RUN_DIR --out plan.html           # a run's plan, interactive, in a browser
 
-``dispatch`` gives ``uavplan-study``, ``uavplan-bench`` (and ``uavplan``) their sub-commands: each
-is a module whose ``main(argv) -> int`` parses its own arguments.
+``dispatch`` gives ``uavplan-study``, ``uavplan-diagnose``, ``uavplan-bench`` (and ``uavplan``) their
+sub-commands: each is a module whose ``main(argv) -> int`` parses its own arguments.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from pipeline.cell import CellFailed, run_and_record, scene_label
+from pipeline.photo_survey import plan_from_photos
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
@@ -46,8 +48,6 @@ def run_cell_main(cfg: DictConfig) -> None:
 @hydra.main(version_base=None, config_path=str(CONF_DIR), config_name="photos")
 def plan_photos_main(cfg: DictConfig) -> None:
     """The second flight from a folder of photos of the first (``pipeline.photo_survey``)."""
-    from pipeline.photo_survey import plan_from_photos
-
     try:
         plan_from_photos(cfg, Path(HydraConfig.get().runtime.output_dir))
     except Exception as exc:
@@ -128,7 +128,7 @@ def _summary(target: str) -> str:
     return ""
 
 
-COMMANDS = {"run": "!_run", "plan-photos": "!_plan_photos"}
+COMMANDS = {"run": "!_run", "plan-photos": "!_plan_photos", "view": "experiments.viewer"}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

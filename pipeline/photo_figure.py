@@ -16,9 +16,11 @@ import numpy as np
 def write_flight_figure(path: Path, proxy, flight, plan, registered: set[str], report: dict) -> Path:
     """Draw ``path`` (PNG) from the proxy (``pipeline.proxy.Proxy`` or a mesh), the exploratory
     ``flight`` (``reconstruct.flight.Flight``), the ``plan`` and the names SfM registered."""
+    # heavy (matplotlib): imported on use
     import matplotlib
 
     matplotlib.use("Agg")
+    # heavy (matplotlib): imported on use
     import matplotlib.pyplot as plt
 
     mesh = getattr(proxy, "mesh", proxy)

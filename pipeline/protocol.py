@@ -24,7 +24,9 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Mapping
+from pathlib import Path
 
+from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline.cache import cache_key
@@ -89,10 +91,6 @@ def protocol_digest(cfg: DictConfig | Mapping) -> str:
 
 def preset_digest(scene: str, overrides: tuple[str, ...] = ()) -> str:
     """``protocol_digest`` of ``run.py scene=<scene>`` with ``overrides`` (the default preset)."""
-    from pathlib import Path
-
-    from hydra import compose, initialize_config_dir
-
     conf = Path(__file__).resolve().parents[1] / "conf"
     with initialize_config_dir(config_dir=str(conf), version_base=None):
         return protocol_digest(compose("config", overrides=[f"scene={scene}", *overrides]))
@@ -109,10 +107,6 @@ def planner_version(planner: str, conf_dir=None) -> int | None:
 
     Raises:
         hydra.errors.MissingConfigException: no such planner config."""
-    from pathlib import Path
-
-    from hydra import compose, initialize_config_dir
-
     conf = Path(conf_dir) if conf_dir is not None else Path(__file__).resolve().parents[1] / "conf"
     with initialize_config_dir(config_dir=str(conf), version_base=None):
         version = compose("config", overrides=[f"planner={planner}"]).planner.get("version")

@@ -21,7 +21,11 @@ import trimesh
 
 from pipeline.cache import cache_key, cached_entry
 from pipeline.proxy_bundle import CLOUD_FILE, MANIFEST, find_bundle, install_bundle, load_cloud, sha256
-from reconstruct.proxy import oriented_cloud
+from planner.lawnmower.lawnmower import plan_exploration
+from reconstruct.cache_keys import proxy_settings
+from reconstruct.pipeline import build_proxy, proxy_flight_config
+from reconstruct.proxy import degraded_ground_truth, oriented_cloud
+from render import render_flight
 from scene.base import Box, Scene
 from scene.camera import Intrinsics
 from scene.config import plain
@@ -80,8 +84,6 @@ def exploration_cache_key(scene: Scene, inputs: ProxyInputs, for_bundle: bool = 
     deterministic mode (a committed proxy is one fixed mesh, whichever mode the cell then
     reconstructs its own flight in: the noise floor's cells plan on the study's proxy) and without
     a mesh scene's path (another checkout's is another path to the same mesh)."""
-    from reconstruct.pipeline import proxy_flight_config, proxy_settings
-
     settings = proxy_settings(proxy_flight_config(inputs.reconstruct))
     scene_settings = plain(inputs.scene)
     if for_bundle:
@@ -136,10 +138,6 @@ def build_exploration_proxy(
         (the entry folder holding ``proxy.ply``, ``plan/``, ``images/``, ``recon/``; record with the
         exploration's image count, registered fraction, timings, ``entry`` and ``cache_hit``).
     """
-    from planner.lawnmower import plan_exploration
-    from reconstruct.pipeline import build_proxy
-    from render import render_flight
-
     seed = int(inputs.seed)
 
     def build(entry: Path) -> dict:
@@ -193,8 +191,6 @@ def proxy_stage(scene: Scene, intrinsics: Intrinsics, inputs: ProxyInputs) -> tu
     """
     source = inputs.reconstruct["proxy"]["source"]
     if source == "ground_truth_degraded":
-        from reconstruct.proxy import degraded_ground_truth
-
         proxy = degraded_ground_truth(scene, inputs.reconstruct, int(inputs.seed))
         return proxy, {"proxy_source": "ground_truth_degraded (NOT the paper's setting)"}
     if source != "reconstruction":

@@ -36,6 +36,7 @@ import trimesh
 
 from pipeline.protocol import PROTOCOL
 from scene.io import write_json_atomic
+from scene.plan import read_viewpoints
 
 log = logging.getLogger(__name__)
 
@@ -180,8 +181,6 @@ def install_bundle(bundle: Path, entry: Path, render_images) -> dict:
     ``recon/sparse`` and ``plan/``, then ``render_images(viewpoints, kinds, entry / "images")``
     renders the exploration's images again. Returns the exploration's record (the manifest's),
     with ``bundle`` (its path relative to the repository) and ``bundle_bytes``."""
-    from scene.plan import read_viewpoints
-
     manifest = check_bundle(bundle)
     shutil.copyfile(bundle / PROXY_FILE, entry / PROXY_FILE)
     shutil.copyfile(bundle / CLOUD_FILE, entry / CLOUD_FILE)

@@ -1,28 +1,35 @@
 """Every setting of a cell, checked before any work: a bad value costs one line, not an exploration.
 
-``cell_settings(cfg)`` builds the typed settings each stage will use from the composed run config
-(the planner's parameters with its budget, the camera, the drone, SfM, dense, evaluation) and
-raises ``SettingsError`` naming the first bad setting. ``pipeline.cell.run_cell`` calls it before
-the scene loads.
+``cell_settings(cfg)`` builds, once, the typed settings each stage will use from the composed run
+config (the planner's parameters with its budget, the camera, the drone, SfM, dense, evaluation,
+and each stage's own config group detached from the run config) and raises ``SettingsError`` naming
+the first bad setting. ``pipeline.cell.run_cell`` calls it before the scene loads and hands each
+stage its own part; no stage reads the run config.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from drone.model import DroneSettings
 from evaluate.settings import EvaluationSettings
+from pipeline.protocol import protocol_fields
+from pipeline.proxy import ProxyInputs
 from planner.budget import DEFAULT_LEVEL, apply_budget
+from reconstruct.cache_keys import flight_fusion_bytes
 from reconstruct.dense_settings import DenseSettings
-from reconstruct.pipeline import flight_fusion_bytes, proxy_flight_config
-from reconstruct.sfm_settings import SfmSettings
+from reconstruct.pipeline import proxy_flight_config
+from reconstruct.settings import ReconstructSettings
+from render.flight import RenderSettings
 from scene.camera import Intrinsics
-from scene.config import plain
+from scene.config import detached, plain
 from scene.plan import PlanningError
+from scene.registry import SceneSettings
 
 FLIGHT_ORDERS = ("flight_time", "planner")
 
@@ -32,8 +39,23 @@ class SettingsError(ValueError):
 
 
 @dataclass(frozen=True)
+class PlannerSettings:
+    """What the plan stage runs: the planner and its parameters.
+
+    Attributes:
+        target: the planner's ``plan`` function (``planner._target_``).
+        params: its parameters, preset overrides and budget applied (``planner_setup``).
+        flight_order: ``planner`` (its own order) or ``flight_time`` (``survey.flight_order``).
+    """
+
+    target: str
+    params: DictConfig
+    flight_order: str
+
+
+@dataclass(frozen=True)
 class CellSettings:
-    """What the stages of one cell run with, every block checked.
+    """What the stages of one cell run with, every block checked, built once (``cell_settings``).
 
     Attributes:
         intrinsics: the survey camera (``camera``).
@@ -42,6 +64,14 @@ class CellSettings:
         budget: ``budget``, ``budget_knob``, ``budget_value`` for ``metrics.json``.
         evaluation: the evaluation settings (``evaluate``).
         target_gsd_m: the survey's target ground sampling distance (m/px).
+        planner: the plan stage's part (``PlannerSettings``).
+        scene: the ``scene`` group (``scene.registry.load_scene``).
+        proxy: the proxy stage's groups (``pipeline.proxy.ProxyInputs``).
+        render: the ``render`` group (``render.render_flight``).
+        reconstruct: the ``reconstruct`` group, typed (``reconstruct.pipeline.reconstruct_flight``).
+        seed: the cell's seed.
+        cache_dir: the stage cache root.
+        protocol: ``protocol`` and ``protocol_digest`` for ``metrics.json`` (``pipeline.protocol``).
     """
 
     intrinsics: Intrinsics
@@ -50,6 +80,21 @@ class CellSettings:
     budget: dict
     evaluation: EvaluationSettings
     target_gsd_m: float
+    planner: PlannerSettings
+    scene: SceneSettings
+    proxy: ProxyInputs
+    render: RenderSettings
+    reconstruct: ReconstructSettings
+    seed: int
+    cache_dir: str | None
+    protocol: dict
+
+
+def scene_label(cfg: DictConfig) -> str:
+    """The scene's name in records: its config's name, or for ``scene=mesh`` the mesh file's stem
+    (``scene.path=cache/meshes/hall.glb`` -> ``hall``), so two users' meshes are two scenes."""
+    path = OmegaConf.select(cfg, "scene.path", default=None) if cfg.scene.name == "mesh" else None
+    return Path(str(path)).stem if path else str(cfg.scene.name)
 
 
 def planner_setup(cfg: DictConfig) -> tuple[DictConfig, dict]:
@@ -124,15 +169,41 @@ def cell_settings(cfg: DictConfig) -> CellSettings:
             raise ValueError(f"survey.flight_order must be one of {FLIGHT_ORDERS}, got {order!r}")
         # The reconstruction before the planner: ours' budget prune reads the dense stage's partner
         # test (planner.budget_partners), so a bad value is named where the user set it.
-        SfmSettings.from_config(cfg.reconstruct.sfm)
-        dense = DenseSettings.from_config(cfg.reconstruct.dense)
-        DenseSettings.from_config(proxy_flight_config(cfg.reconstruct)["dense"], "reconstruct.proxy.dense")
-        check_fusion_memory(dense, plain(cfg.camera))
+        reconstruct = ReconstructSettings.build(
+            cfg.reconstruct, proxy_flight_config(cfg.reconstruct)["dense"]
+        )
+        check_fusion_memory(reconstruct.dense, plain(cfg.camera))
         params, budget = planner_setup(cfg)
-        check_planner(str(cfg.planner._target_), params, intrinsics)
+        target = str(cfg.planner._target_)
+        check_planner(target, params, intrinsics)
         evaluation = EvaluationSettings.from_config(cfg.evaluate)
     except SettingsError:
         raise
     except (ValueError, TypeError, KeyError, PlanningError) as exc:
         raise SettingsError(str(exc).strip("'\"")) from exc
-    return CellSettings(intrinsics, drone, params, budget, evaluation, float(gsd))
+    seed = int(cfg.seed)
+    proxy = ProxyInputs(
+        detached(cfg.scene),
+        detached(cfg.camera),
+        detached(cfg.exploration),
+        detached(cfg.render),
+        reconstruct.node,
+        str(cfg.cache_dir),
+        seed,
+    )
+    return CellSettings(
+        intrinsics,
+        drone,
+        params,
+        budget,
+        evaluation,
+        float(gsd),
+        planner=PlannerSettings(target, params, str(order)),
+        scene=SceneSettings(proxy.scene),
+        proxy=proxy,
+        render=RenderSettings(proxy.render),
+        reconstruct=reconstruct,
+        seed=seed,
+        cache_dir=None if cfg.cache_dir is None else str(cfg.cache_dir),
+        protocol=protocol_fields(cfg, scene_label(cfg)),
+    )

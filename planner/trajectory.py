@@ -15,6 +15,7 @@ from __future__ import annotations
 import elkai
 import numpy as np
 
+from drone.model import legs_time_s
 from scene.plan import PlanningError, polyline_length
 
 _MM_PER_M = 1000.0
@@ -105,8 +106,6 @@ def flight_time_costs(viewpoints: np.ndarray, takeoff: np.ndarray, drone) -> np.
     ``cost[i, j]`` is the leg from node i to node j (``drone.model.legs_time_s``: acceleration,
     cruise, climb and descent rates) plus, arriving at a waypoint from another, the yaw and gimbal
     turn between their attitudes; the photo time is the same for every order and left out."""
-    from drone.model import legs_time_s
-
     vps = np.asarray(viewpoints, dtype=float).reshape(-1, 5)
     nodes = np.concatenate([np.asarray(takeoff, float).reshape(1, 3), vps[:, :3]])
     n = len(nodes)
@@ -162,10 +161,3 @@ def order_by_flight_time(viewpoints: np.ndarray, takeoff: np.ndarray, drone, fir
     if sorted(order.tolist()) != list(range(n)):
         raise PlanningError("TSP solver returned an invalid tour")
     return order
-
-
-def tour_time_s(viewpoints: np.ndarray, order, takeoff: np.ndarray, drone) -> float:
-    """Seconds of the closed flight take-off -> ``order`` -> take-off on ``flight_time_costs``."""
-    cost = flight_time_costs(viewpoints, takeoff, drone)
-    path = [0, *(np.asarray(order, int) + 1), 0]
-    return float(sum(cost[a, b] for a, b in zip(path[:-1], path[1:], strict=True)))

@@ -10,6 +10,9 @@ in the frame of the sparse model (the world frame once it is aligned):
   gradients;
 - ``cuda``: ``pycolmap.patch_match_stereo`` (needs a CUDA build of pycolmap).
 
+The matching itself lives in ``reconstruct.stereo``; this module picks the back-end, runs it on a
+workspace and fuses its maps.
+
 Pixel coordinates here are OpenCV's (pixel centres at integers); COLMAP's pinhole parameters are
 shifted by half a pixel when the intrinsic matrices are built.
 """
@@ -17,49 +20,34 @@ shifted by half a pixel when the intrinsic matrices are built.
 from __future__ import annotations
 
 import logging
-import math
-import os
 import shutil
 import time
-from collections.abc import Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
-import cv2
 import numpy as np
+import psutil
 import pycolmap
 from tqdm import tqdm
 
-from reconstruct.dense_settings import (
-    BACKENDS,
-    OPENCV_P1_PER_BLOCK_PIXEL,
-    OPENCV_P2_PER_BLOCK_PIXEL,
-    DenseSettings,
-)
-from reconstruct.depth_filter import edge_pixels, geometric_support
-from reconstruct.rectify import DEFAULT_MAX_AREA_RATIO, RectifiedPair, rectify_pair
+from reconstruct import fusion_chunks as fc
+from reconstruct.dense_settings import BACKENDS, DenseSettings
+from reconstruct.fusion_chunks import read_visibility
+from reconstruct.fusion_rays import best_conditioned_per_voxel, fuse_along_rays, well_conditioned
+from reconstruct.fusion_support import supported_points
+from reconstruct.oracle import compute_depth_maps_oracle
+from reconstruct.stereo.depth_maps import compute_depth_maps_cpu, compute_depth_maps_cuda
 from reconstruct.workspace import (
-    DEPTH_SUFFIX,
-    View,
     overlapping_views,
     prepare_workspace,
     read_views,
     select_partners,
-    sparse_points_by_image,
     stereo_baselines,
-    write_maps,
 )
 from scene.io import write_atomic, write_text_atomic
 
-if TYPE_CHECKING:
-    import scipy.sparse
-
 log = logging.getLogger(__name__)
-
-# A normal window whose depths spread more than this (relative) straddles an occlusion edge.
-_MAX_WINDOW_DEPTH_JUMP = 0.05
 
 
 def select_backend(requested: str) -> str:
@@ -79,470 +67,6 @@ def select_backend(requested: str) -> str:
             "reconstruct.dense.backend=cuda but this pycolmap has no CUDA (install pycolmap-cuda12)"
         )
     return requested
-
-
-def disparity_search_range(pair: RectifiedPair, depth: np.ndarray, max_num_disparities: int):
-    """SGBM (min_disparity, num_disparities) covering sparse points at rectified depths ``depth`` (m).
-
-    The 2nd-98th percentile of their disparities, widened by 25 %; None with fewer than 5 points.
-    When that span exceeds ``max_num_disparities``, the window of that width holding the most sparse
-    points (80 % of it, with a tenth on each side as margin): a low view across the ground towards
-    a wall sees disparities from the near ground to the far background, and a window anchored at
-    the far end would leave out the wall in between.
-    """
-    depth = depth[depth > 0]
-    if len(depth) < 5:
-        return None
-    disparity = np.sort(pair.K_rect[0, 0] * pair.baseline / depth)
-    d_lo, d_hi = np.percentile(disparity, [2.0, 98.0])
-    d_lo, d_hi = d_lo / 1.25, d_hi * 1.25
-    min_disp = int(math.floor(d_lo))
-    num = int(math.ceil((d_hi - min_disp) / 16.0)) * 16
-    cap = int(max_num_disparities)
-    if num <= cap:
-        return min_disp, max(num, 16)
-    inner = 0.8 * cap
-    held = np.searchsorted(disparity, disparity + inner, side="right") - np.arange(len(disparity))
-    start = disparity[int(np.argmax(held))]
-    return int(math.floor(start - 0.1 * cap)), cap
-
-
-def textured_pixels(gray: np.ndarray, window_px: int, min_std: float) -> np.ndarray:
-    """Pixels (H, W) bool whose ``window_px`` square neighbourhood has a grey-level standard deviation
-    of at least ``min_std`` (0-255 scale).
-
-    SGBM's path costs carry a disparity across a textureless region: the uniform sky beside a tower
-    takes the tower's depth and fuses into a cloud of sky-coloured points around it (the cathedral's
-    lawnmower flight: 98 % of its points off by more than 0.5 m above 30 m were sky blue). Rendered
-    sky has a local deviation below 0.5 grey levels, textured surfaces above 4 (1st percentile).
-    """
-    if int(window_px) < 1:
-        raise ValueError(f"reconstruct.dense.texture_window_px must be >= 1, got {window_px}")
-    g = np.asarray(gray, dtype=np.float32)
-    size = (int(window_px), int(window_px))
-    mean = cv2.boxFilter(g, -1, size, borderType=cv2.BORDER_REFLECT)
-    mean_sq = cv2.boxFilter(g * g, -1, size, borderType=cv2.BORDER_REFLECT)
-    return np.sqrt(np.maximum(mean_sq - mean * mean, 0.0)) >= float(min_std)
-
-
-def sgbm_matcher(scfg: Mapping, num_disparities: int):
-    """OpenCV's 3-way SGBM with ``reconstruct.dense.sgbm``'s settings, searching ``num_disparities``
-    px from 0 (a multiple of 16); P1 and P2 are the settings' per-pixel penalties times the block's
-    area (OpenCV's suggested 8 and 32 for one channel)."""
-    block = int(scfg["block_size"])
-    return cv2.StereoSGBM.create(
-        minDisparity=0,
-        numDisparities=int(num_disparities),
-        blockSize=block,
-        P1=round(float(scfg.get("p1_per_block_pixel", OPENCV_P1_PER_BLOCK_PIXEL)) * block * block),
-        P2=round(float(scfg.get("p2_per_block_pixel", OPENCV_P2_PER_BLOCK_PIXEL)) * block * block),
-        disp12MaxDiff=int(scfg["disp12_max_diff"]),
-        uniquenessRatio=int(scfg["uniqueness_ratio"]),
-        speckleWindowSize=int(scfg["speckle_window_size"]),
-        speckleRange=int(scfg["speckle_range"]),
-        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
-    )
-
-
-def sgbm_disparity(sgbm, left: np.ndarray, right: np.ndarray, mirror_pass: bool) -> np.ndarray:
-    """SGBM's disparity (px, float32; negative where it found no match) of rectified ``left``.
-
-    The 3-way mode aggregates its costs along paths that come from above only, so on a surface
-    whose disparity changes down the image it lags behind the change: a pair's depth comes out
-    0.1-0.35 px of disparity off, one way when the partner lies to the reference's right and the
-    other way when it lies to its left (rectification turns the images half round). With
-    ``mirror_pass`` the pair is matched once more upside down (rows reversed: epipolar lines and
-    disparities stay as they were, the paths now come from below) and the two maps are averaged
-    where both matched; where one did, its value is kept. On the tomb / Smith pairs this took the
-    median error on the ground from +-0.13-0.35 to 0.004-0.04 px for 1.7-1.9x the matching time.
-    """
-    disparity = sgbm.compute(left, right).astype(np.float32) / 16.0  # SGBM's fixed point: 1/16 px
-    if mirror_pass:
-        mirrored = sgbm.compute(np.ascontiguousarray(left[::-1]), np.ascontiguousarray(right[::-1]))
-        upside_down = mirrored[::-1].astype(np.float32) / 16.0
-        both = (disparity >= 0) & (upside_down >= 0)
-        only_mirrored = (disparity < 0) & (upside_down >= 0)
-        disparity = np.where(only_mirrored, upside_down, disparity)
-        disparity = np.where(both, 0.5 * (disparity + upside_down), disparity)
-    return disparity.astype(np.float32)
-
-
-def matchable_window(
-    left_valid: np.ndarray, right_valid: np.ndarray, num_disparities: int
-) -> tuple[slice, slice] | None:
-    """The rows and columns of a rectified canvas SGBM must match to reach every pixel it can match.
-
-    A reference pixel at column x (``left_valid``, (H, W) bool) can match where the partner
-    (``right_valid``) has a pixel in columns x - num_disparities + 1 .. x of its row. The window
-    is the box of those pixels, widened on the left by ``num_disparities`` columns (SGBM leaves the
-    first ``num_disparities`` columns of what it matches unmatched). None when no pixel can match.
-    On the tomb's 100-image ours flight the rectified canvases (the reference turned into the pair's
-    orientation, plus the search's left padding) were 2.4x the image at the median and 37 % of their
-    pixels could match; the box holds 67 % of the canvas's SGBM work.
-    """
-    n = int(num_disparities)
-    reach = np.cumsum(np.pad(right_valid.astype(np.int32), ((0, 0), (n, 0))), axis=1)
-    matchable = left_valid & ((reach[:, n:] - reach[:, :-n]) > 0)
-    rows = np.flatnonzero(matchable.any(axis=1))
-    if len(rows) == 0:
-        return None
-    cols = np.flatnonzero(matchable.any(axis=0))
-    start = max(0, int(cols[0]) - n)
-    stop = min(max(int(cols[-1]) + 1, start + n + 1), matchable.shape[1])  # SGBM needs more than n
-    return slice(int(rows[0]), int(rows[-1]) + 1), slice(start, stop)
-
-
-def pair_depth(
-    ref: View, src: View, ref_gray: np.ndarray, src_gray: np.ndarray, ref_points: np.ndarray, cfg: Mapping
-) -> np.ndarray | None:
-    """Depth (H, W) float32 in metres along the reference's optical axis from one stereo pair.
-
-    NaN where SGBM found no consistent match. ``ref_points`` (P, 3) are sparse world points seen by
-    the reference; they bound the disparity search. None if the pair cannot be rectified.
-    """
-    max_area = float(cfg.get("max_rectified_area_ratio", DEFAULT_MAX_AREA_RATIO))
-    pair = rectify_pair(ref, src, max_area_ratio=max_area)
-    if pair is None:
-        return None
-    depth_rect = (ref_points - ref.center) @ pair.rect_from_world[2]
-    search = disparity_search_range(pair, depth_rect, int(cfg["max_num_disparities"]))
-    if search is None:
-        return None
-    min_disp, num_disp = search
-    pair = rectify_pair(ref, src, disparity_offset=min_disp, pad_left=num_disp, max_area_ratio=max_area)
-    if pair is None:
-        return None
-    width, height = pair.size
-    ones = np.full(src_gray.shape, 255, np.uint8)
-    right_valid = cv2.warpPerspective(ones, pair.H_src, (width, height), flags=cv2.INTER_NEAREST)
-    scfg = cfg["sgbm"]
-    row_span, col_span = slice(0, height), slice(0, width)
-    if scfg.get("crop_to_overlap", False):
-        ref_ones = np.full(ref_gray.shape, 255, np.uint8)
-        left_valid = cv2.warpPerspective(ref_ones, pair.H_ref, (width, height), flags=cv2.INTER_NEAREST)
-        window = matchable_window(left_valid > 0, right_valid > 0, num_disp)
-        if window is None:
-            return None
-        row_span, col_span = window
-    # Each image is warped straight into the window: the canvas shifted by its top-left corner.
-    corner = np.array([[1.0, 0.0, -col_span.start], [0.0, 1.0, -row_span.start], [0.0, 0.0, 1.0]])
-    size = (col_span.stop - col_span.start, row_span.stop - row_span.start)
-    left = cv2.warpPerspective(ref_gray, corner @ pair.H_ref, size, flags=cv2.INTER_LINEAR)
-    right = cv2.warpPerspective(src_gray, corner @ pair.H_src, size, flags=cv2.INTER_LINEAR)
-
-    mirror_pass = bool(scfg.get("mirror_pass", False))
-    disparity = np.full((height, width), -1.0, np.float32)
-    disparity[row_span, col_span] = sgbm_disparity(sgbm_matcher(scfg, num_disp), left, right, mirror_pass)
-    valid = disparity >= 0.0
-    valid &= disparity + min_disp > 0.5
-    # The matched pixel must lie inside the partner's image (SGBM happily matches the black border).
-    rows, cols = np.nonzero(valid)
-    match_cols = np.round(cols - disparity[rows, cols]).astype(int)
-    inside = (match_cols >= 0) & (match_cols < width)
-    inside[inside] = right_valid[rows[inside], match_cols[inside]] > 0
-    valid[rows[~inside], cols[~inside]] = False
-    disparity[~valid] = 0.0
-
-    # Sample the disparity at every reference pixel; keep only pixels whose 4 neighbours are valid.
-    u, v = np.meshgrid(np.arange(ref.width, dtype=np.float64), np.arange(ref.height, dtype=np.float64))
-    pix = np.stack([u, v, np.ones_like(u)], -1) @ pair.H_ref.T
-    map_x = (pix[..., 0] / pix[..., 2]).astype(np.float32)
-    map_y = (pix[..., 1] / pix[..., 2]).astype(np.float32)
-    d_ref = cv2.remap(disparity, map_x, map_y, cv2.INTER_LINEAR, borderValue=0.0)
-    ok = cv2.remap(valid.astype(np.float32), map_x, map_y, cv2.INTER_LINEAR, borderValue=0.0) > 0.999
-    z_rect = np.full(d_ref.shape, np.nan, np.float32)
-    z_rect[ok] = pair.K_rect[0, 0] * pair.baseline / (d_ref[ok] + min_disp)
-    # Depth along the reference axis of the point at rectified depth z_rect on each reference ray.
-    rays_cam = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(ref.K).T
-    rays_world = rays_cam @ ref.rotation
-    scale = rays_world @ pair.rect_from_world[2]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        depth = (z_rect / scale).astype(np.float32)
-    depth[~(depth > 0)] = np.nan
-    min_std = float(cfg["min_texture_std"])
-    if not min_std >= 0.0:
-        raise ValueError(f"reconstruct.dense.min_texture_std must be >= 0 (0 disables it), got {min_std}")
-    if min_std > 0.0:
-        depth[~textured_pixels(ref_gray, int(cfg["texture_window_px"]), min_std)] = np.nan
-    return depth
-
-
-def consistent_depth(
-    depths: np.ndarray, min_consistent: int, rel_tol: float, weights: np.ndarray | None = None
-) -> np.ndarray:
-    """Combine per-partner depth maps (K, H, W) (NaN = none) into one (H, W) (NaN = rejected).
-
-    A pixel is kept when at least ``min(min_consistent, K)`` partners lie within ``rel_tol``
-    (relative) of the partners' median; its depth is the mean of those agreeing partners, weighted
-    by ``weights`` (K,) (each partner's precision; None: equal weights).
-    """
-    depths = np.asarray(depths, dtype=np.float32)
-    needed = max(1, min(int(min_consistent), depths.shape[0]))
-    # NaN-aware median without np.nanmedian's all-NaN warnings (warning filters are not thread-safe).
-    ordered = np.sort(depths, axis=0)
-    n_valid = np.isfinite(depths).sum(axis=0)
-    lo_idx = np.maximum(n_valid - 1, 0) // 2
-    hi_idx = n_valid // 2
-    hi_idx = np.minimum(hi_idx, depths.shape[0] - 1)
-    median = 0.5 * (
-        np.take_along_axis(ordered, lo_idx[None], 0)[0] + np.take_along_axis(ordered, hi_idx[None], 0)[0]
-    )
-    median[n_valid == 0] = np.nan
-    with np.errstate(invalid="ignore"):
-        agree = np.abs(depths - median) <= rel_tol * median
-    count = agree.sum(axis=0)
-    w = np.ones(depths.shape[0], np.float64) if weights is None else np.asarray(weights, np.float64)
-    w = np.where(agree, w[:, None, None], 0.0)
-    total = (w * np.where(agree, depths, 0.0)).sum(axis=0)
-    out = np.full(median.shape, np.nan, np.float32)
-    keep = count >= needed
-    out[keep] = total[keep] / w.sum(axis=0)[keep]
-    return out
-
-
-def partner_weights(ref: View, partners: Sequence[View], cfg: Mapping) -> np.ndarray | None:
-    """The weights of ``partners``' depth maps in ``ref``'s combined map (``consistent_depth``):
-    with ``partner_weights: precision`` each pair's precision, ``B^2`` (at one reference pixel every
-    partner's depth noise is ``z^2 / (f B) s``); None (equal weights) otherwise."""
-    if cfg.get("partner_weights", "equal") != "precision":
-        return None
-    return np.array([float(np.sum((p.center - ref.center) ** 2)) for p in partners])
-
-
-def normals_from_depth(depth: np.ndarray, K: np.ndarray, window: int) -> np.ndarray:
-    """Unit normals (H, W, 3) in the camera frame from a depth map (NaN = none), facing the camera.
-
-    The back-projected points are box-filtered over ``window`` pixels before central differences
-    over ``window // 2`` pixels, so SGBM's sub-pixel noise does not dominate. Windows that are not
-    full or straddle a depth jump (> ``_MAX_WINDOW_DEPTH_JUMP`` relative) give no normal; such
-    pixels near a surface's edge then take the mean normal of their neighbours, so the edges of
-    surfaces are not eroded by the window. Zero where undefined.
-    """
-    h, w = depth.shape
-    valid = np.isfinite(depth)
-    u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
-    points = np.where(valid[..., None], rays * np.nan_to_num(depth)[..., None], 0.0).astype(np.float32)
-    k = max(1, int(window))
-    kernel = np.ones((k, k), np.uint8)
-    weight = cv2.boxFilter(valid.astype(np.float32), -1, (k, k), normalize=False)
-    summed = cv2.boxFilter(points, -1, (k, k), normalize=False)
-    depth_hi = cv2.dilate(np.where(valid, depth, 0.0).astype(np.float32), kernel)
-    depth_lo = cv2.erode(np.where(valid, depth, np.inf).astype(np.float32), kernel)
-    with np.errstate(invalid="ignore"):
-        smooth_window = (depth_hi - depth_lo) <= _MAX_WINDOW_DEPTH_JUMP * depth_lo
-    full = (weight >= 0.999 * k * k) & smooth_window
-    smooth = summed / np.maximum(weight, 1.0)[..., None]
-    s = max(1, k // 2)
-    du = np.zeros_like(smooth)
-    dv = np.zeros_like(smooth)
-    du[:, s:-s] = smooth[:, 2 * s :] - smooth[:, : -2 * s]
-    dv[s:-s, :] = smooth[2 * s :, :] - smooth[: -2 * s, :]
-    ok = np.zeros_like(full)
-    ok[s:-s, s:-s] = full[s:-s, 2 * s :] & full[s:-s, : -2 * s] & full[2 * s :, s:-s] & full[: -2 * s, s:-s]
-    ok &= valid
-    normals = np.cross(dv, du)
-    norm = np.linalg.norm(normals, axis=-1)
-    ok &= norm > 0
-    normals[ok] /= norm[ok][:, None]
-    normals[~ok] = 0.0
-    # Grow the normals into the valid pixels they do not reach (edges of surfaces), 1 px a step.
-    for _ in range(2 * s + 1):
-        missing = valid & ~ok
-        if not missing.any():
-            break
-        count = cv2.boxFilter(ok.astype(np.float32), -1, (3, 3), normalize=False)
-        mean = cv2.boxFilter(normals, -1, (3, 3), normalize=False)
-        grow = missing & (count > 0)
-        length = np.linalg.norm(mean[grow], axis=-1)
-        keep = length > 1e-6
-        rows, cols = np.nonzero(grow)
-        normals[rows[keep], cols[keep]] = mean[grow][keep] / length[keep][:, None]
-        ok[rows[keep], cols[keep]] = True
-    facing_away = np.einsum("hwc,hwc->hw", normals, rays) > 0
-    normals[facing_away] *= -1.0
-    normals[~ok] = 0.0
-    return normals.astype(np.float32)
-
-
-def reference_views(incidence, per_point: int, min_new_points: int) -> np.ndarray:
-    """Which views get a depth map when each sparse point needs only ``per_point`` of them.
-
-    Greedy cover: repeatedly take the view that sees the most points still seen by fewer than
-    ``per_point`` chosen views, until no view adds ``min_new_points`` of them. A point seen by
-    fewer views keeps all of them that add enough. Views left out still serve as stereo partners.
-
-    Args:
-        incidence: (V, P) sparse 0/1 matrix, view v sees sparse point p.
-        per_point: chosen views wanted per point (>= 1).
-        min_new_points: a view adding fewer under-covered points than this is not chosen (>= 1).
-
-    Returns:
-        (V,) bool, True for a view that gets a depth map.
-    """
-    import scipy.sparse  # here: the CUDA back-end's machine needs only numpy, OpenCV and pycolmap
-
-    if int(per_point) < 1 or int(min_new_points) < 1:
-        raise ValueError(
-            f"reference views: per_point and min_new_points must be >= 1, got {per_point}, {min_new_points}"
-        )
-    A = scipy.sparse.csr_matrix(incidence, dtype=np.int32)
-    chosen = np.zeros(A.shape[0], dtype=bool)
-    covered = np.zeros(A.shape[1], dtype=np.int32)
-    while True:
-        gains = A @ (covered < per_point).astype(np.int32)
-        gains[chosen] = -1
-        best = int(np.argmax(gains))
-        if gains[best] < min_new_points:
-            return chosen
-        chosen[best] = True
-        covered[A.indices[A.indptr[best] : A.indptr[best + 1]]] += 1
-
-
-def sparse_incidence(rec: pycolmap.Reconstruction, names) -> scipy.sparse.csr_matrix:
-    """(len(names), P) 0/1 matrix: which sparse points of the model ``rec`` each view sees."""
-    import scipy.sparse
-
-    by_name = {rec.image(i).name: rec.image(i) for i in rec.reg_image_ids()}
-    column = {pid: k for k, pid in enumerate(sorted(rec.point3D_ids()))}
-    rows, cols = [], []
-    for r, name in enumerate(names):
-        image = by_name.get(name)
-        ids = {p.point3D_id for p in image.points2D if p.has_point3D()} if image is not None else set()
-        rows.extend([r] * len(ids))
-        cols.extend(column[i] for i in ids)
-    data = np.ones(len(rows), dtype=np.int8)
-    return scipy.sparse.csr_matrix((data, (rows, cols)), shape=(len(names), len(column)))
-
-
-def compute_depth_maps_cpu(workspace: Path, cfg: Mapping) -> dict[str, int]:
-    """CPU back-end: SGBM depth + normal maps for every view that has partners (or, with
-    ``reference_views_per_point`` set, for the views ``reference_views`` keeps); return valid-pixel
-    counts (0 for a view without a map)."""
-    workspace = Path(workspace)
-    views = read_views(workspace)
-    partners = select_partners(workspace, views, cfg)
-    per_point = cfg.get("reference_views_per_point")
-    if per_point is not None:
-        order = sorted(views)
-        keep = reference_views(
-            sparse_incidence(pycolmap.Reconstruction(workspace / "sparse"), order),
-            int(per_point),
-            int(cfg.get("reference_min_new_points", 1)),
-        )
-        log.info(
-            "dense: %d of %d views get a depth map (%d per sparse point), the rest serve as partners",
-            int(keep.sum()),
-            len(order),
-            int(per_point),
-        )
-        references = {name for name, k in zip(order, keep, strict=True) if k}
-    else:
-        references = set(views)
-    points_by_name = sparse_points_by_image(workspace)
-    min_consistent = int(cfg["min_consistent_partners"])
-    rel_tol = float(cfg["consistency_rel_tol"])
-    window = int(cfg["normal_window_px"])
-    edge_margin = int(cfg.get("edge_margin_px", 0))
-    geometric = cfg.get("geometric_consistency") or {"min_views": 0}
-    checked = int(geometric["min_views"]) > 0  # a second pass checks every map against others
-    raw_dir = workspace / "stereo" / "raw_depth"
-    if checked:
-        raw_dir.mkdir(parents=True, exist_ok=True)
-
-    def finish(name: str, depth: np.ndarray) -> int:
-        normals = normals_from_depth(depth, views[name].K, window)
-        write_maps(workspace, name, depth, normals)
-        return int(np.count_nonzero(np.any(normals != 0, axis=-1)))
-
-    def gray(name: str) -> np.ndarray:
-        image = cv2.imread(str(workspace / "images" / name), cv2.IMREAD_GRAYSCALE)
-        if image is None:
-            raise ValueError(f"{workspace / 'images' / name}: unreadable image")
-        return image
-
-    def one_view(name: str) -> tuple[str, int]:
-        ref = views[name]
-        if name not in references or not partners.get(name):
-            return name, 0
-        ref_gray = gray(name)
-        depths, measured = [], []
-        for src_name in partners[name]:
-            depth = pair_depth(ref, views[src_name], ref_gray, gray(src_name), points_by_name[name], cfg)
-            if depth is not None:
-                depths.append(depth)
-                measured.append(views[src_name])
-        if not depths:
-            return name, 0
-        weights = partner_weights(ref, measured, cfg)
-        depth = consistent_depth(np.stack(depths), min_consistent, rel_tol, weights)
-        depth[edge_pixels(depth, edge_margin)] = np.nan
-        if checked:
-            np.save(raw_dir / f"{name.replace('/', '__')}.npy", depth)
-            return name, int(np.count_nonzero(np.isfinite(depth)))
-        return name, finish(name, depth)
-
-    def raw(name: str) -> np.ndarray:
-        return np.load(raw_dir / f"{name.replace('/', '__')}.npy")
-
-    def checked_view(name: str) -> tuple[str, int]:
-        depth = raw(name)
-        others = [n for n in neighbours[name] if valid_pixels.get(n, 0) > 0][: int(geometric["num_views"])]
-        support = geometric_support(
-            views[name], depth, [(views[n], raw(n)) for n in others], float(geometric["rel_tol"])
-        )
-        depth[support < int(geometric["min_views"])] = np.nan
-        return name, finish(name, depth)
-
-    threads = int(cfg.get("num_threads", -1))
-    threads = os.cpu_count() or 1 if threads <= 0 else threads
-    names = sorted(views)
-    n_without = sum(1 for n in names if not partners.get(n))
-    if n_without:
-        log.info("%d of %d views have no stereo partner", n_without, len(names))
-    valid_pixels = {}
-    # One view per core, each SGBM on one thread: OpenCV's own pool inside every worker would put
-    # threads x cores threads on the cores.
-    opencv_threads = cv2.getNumThreads()
-    cv2.setNumThreads(1 if threads > 1 else opencv_threads)
-    try:
-        with ThreadPoolExecutor(max_workers=threads) as pool:
-            for name, count in tqdm(
-                pool.map(one_view, names), total=len(names), desc="stereo (SGBM)", unit="view"
-            ):
-                valid_pixels[name] = count
-            if checked:
-                neighbours = overlapping_views(workspace)
-                mapped = [n for n in names if valid_pixels[n] > 0]
-                for name, count in tqdm(
-                    pool.map(checked_view, mapped), total=len(mapped), desc="geometric check", unit="view"
-                ):
-                    valid_pixels[name] = count
-    finally:
-        cv2.setNumThreads(opencv_threads)
-        shutil.rmtree(raw_dir, ignore_errors=True)
-    return valid_pixels
-
-
-def compute_depth_maps_cuda(workspace: Path, cfg: Mapping) -> dict[str, int]:
-    """CUDA back-end: ``pycolmap.patch_match_stereo`` with geometric consistency.
-
-    Source views come from the workspace's ``stereo/patch-match.cfg`` (the undistorter writes
-    ``__auto__, 20``). Returns 1 for every view that got a geometric depth map.
-    """
-    stereo = Path(workspace) / "stereo"
-    # COLMAP only logs (does not raise) when it cannot write a map into a missing folder.
-    for folder in ("depth_maps", "normal_maps", "consistency_graphs"):
-        (stereo / folder).mkdir(parents=True, exist_ok=True)
-    pcfg = cfg["patch_match"]
-    options = pycolmap.PatchMatchOptions()
-    options.max_image_size = int(cfg["max_image_size"])
-    options.window_radius = int(pcfg["window_radius"])
-    options.num_iterations = int(pcfg["num_iterations"])
-    options.geom_consistency = True
-    options.min_triangulation_angle = float(cfg["min_triangulation_angle_deg"])
-    pycolmap.patch_match_stereo(workspace, workspace_format="COLMAP", options=options)
-    return {p.name[: -len(DEPTH_SUFFIX)]: 1 for p in (stereo / "depth_maps").glob(f"*{DEPTH_SUFFIX}")}
 
 
 def fusion_options(cfg: Mapping, deterministic: bool = False) -> pycolmap.StereoFusionOptions:
@@ -578,8 +102,6 @@ def fusion_budget_gb(setting) -> float | None:
     if setting is None:
         return None
     if setting == "auto":
-        import psutil
-
         return AUTO_MEMORY_SHARE * psutil.virtual_memory().available / 1e9
     return float(setting)
 
@@ -659,9 +181,8 @@ def _fuse_views(workspace: Path, output_ply: Path, cfg: Mapping, names, determin
 def _fuse_in_chunks(
     workspace: Path, output_ply: Path, cfg: Mapping, names: list[str], max_views: int, deterministic: bool
 ) -> tuple[int, int]:
+    # heavy (open3d): imported on use
     import open3d as o3d
-
-    from reconstruct import fusion_chunks as fc
 
     sparse_dir = workspace / "sparse"
     # COLMAP's fusion walks from a view to its check_num_images most overlapping ones: a chunk
@@ -705,8 +226,6 @@ def _fuse_in_chunks(
 
 def _fuse_rays(workspace: Path, output_ply: Path, cfg: Mapping, names: list[str]) -> int:
     """``fusion.method: rays`` (``reconstruct.fusion_rays``): points on the depth maps' rays."""
-    from reconstruct.fusion_rays import best_conditioned_per_voxel, fuse_along_rays, well_conditioned
-
     views = read_views(workspace)
     partners = select_partners(workspace, views, cfg)
     baselines = stereo_baselines(views, partners, cfg.get("partner_weights", "equal"))
@@ -733,7 +252,6 @@ def _support_kept(cloud: Mapping, cfg: Mapping) -> np.ndarray | None:
     share = float(cfg["fusion"].get("support_share", 0.0))
     if share <= 0:
         return None
-    from reconstruct.fusion_support import supported_points
 
     keep = supported_points(
         cloud["points"], cloud["support"], float(cfg["fusion"]["support_radius_m"]), share
@@ -753,6 +271,7 @@ def _write_cloud(path: Path, cloud: Mapping, keep: np.ndarray | None) -> int:
     Raises OSError, leaving no file, when the disk has not the room or the file came out short:
     Open3D reports success on a PLY the full disk cut off, and evaluation then fails on it later.
     """
+    # heavy (open3d): imported on use
     import open3d as o3d
 
     keep = slice(None) if keep is None else keep
@@ -778,8 +297,6 @@ def _support_filtered(output_ply: Path, cfg: Mapping, n_points: int) -> int:
         return n_points
     # Imported here: the CUDA back-end's machine needs only numpy, OpenCV and pycolmap.
     import open3d as o3d
-
-    from reconstruct.fusion_chunks import read_visibility
 
     counts, _ = read_visibility(Path(str(output_ply) + ".vis"))
     cloud = o3d.io.read_point_cloud(str(output_ply))
@@ -831,8 +348,6 @@ def dense_reconstruct(
     if backend == "cuda":
         valid = compute_depth_maps_cuda(workspace, cfg)
     elif backend == "oracle":
-        from reconstruct.oracle import compute_depth_maps_oracle
-
         valid = compute_depth_maps_oracle(workspace, cfg, ground_truth, seed)
     else:
         valid = compute_depth_maps_cpu(workspace, cfg)

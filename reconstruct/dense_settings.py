@@ -28,8 +28,8 @@ class SgbmSettings:
     speckle_window_size: int = setting(low=0)
     speckle_range: int = setting(low=0)
     disp12_max_diff: int = setting()
-    mirror_pass: bool = setting(False)  # reconstruct.dense.sgbm_disparity: also match upside down, average
-    crop_to_overlap: bool = setting(False)  # reconstruct.dense.matchable_window: match only what can match
+    mirror_pass: bool = setting(False)  # stereo.matching.sgbm_disparity: also match upside down, average
+    crop_to_overlap: bool = setting(False)  # stereo.matching.matchable_window: match only what can match
     p1_per_block_pixel: float = setting(OPENCV_P1_PER_BLOCK_PIXEL, low=0)  # P1 / block_size^2 (steps of 1)
     p2_per_block_pixel: float = setting(OPENCV_P2_PER_BLOCK_PIXEL, low=0)  # P2 / block_size^2 (larger)
 

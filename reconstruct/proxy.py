@@ -10,6 +10,7 @@ from collections.abc import Mapping
 import numpy as np
 import trimesh
 
+from reconstruct.errors import ReconstructionError
 from scene.base import Box, Scene
 
 log = logging.getLogger(__name__)
@@ -56,6 +57,7 @@ def decimate(mesh: trimesh.Trimesh, face_budget: int) -> trimesh.Trimesh:
         raise ValueError(f"proxy.face_budget must be at least 4, got {face_budget}")
     if len(mesh.faces) <= face_budget:
         return mesh
+    # heavy (open3d): imported on use
     import open3d as o3d
 
     o3d_mesh = o3d.geometry.TriangleMesh(
@@ -115,6 +117,7 @@ def oriented_cloud(dense_ply, bounds: Box, voxel_m: float) -> dict[str, np.ndarr
         {"points": (N, 3), "normals": (N, 3)} in world metres; empty arrays when the file has no
         normals (the fusion writes them) or no point inside ``bounds``.
     """
+    # heavy (open3d): imported on use
     import open3d as o3d
 
     cloud = o3d.io.read_point_cloud(str(dense_ply))
@@ -149,9 +152,8 @@ def poisson_proxy(dense_ply, bounds: Box, cfg: Mapping, deterministic: bool = Fa
     Raises:
         ReconstructionError: the cloud is missing or has too few points inside ``bounds``.
     """
+    # heavy (open3d): imported on use
     import open3d as o3d
-
-    from reconstruct.errors import ReconstructionError
 
     pcfg = _proxy_cfg(cfg)
     cloud = o3d.io.read_point_cloud(str(dense_ply))

@@ -11,11 +11,17 @@ import argparse
 import sys
 from pathlib import Path
 
+from omegaconf import OmegaConf
+
+from render import render_flight
+from scene.camera import Intrinsics
+from scene.plan import read_viewpoints
+from scene.registry import load_scene
+
 REPO = Path(__file__).resolve().parents[1]
 
 
 def main(argv: list[str] | None = None) -> int:
-    from omegaconf import OmegaConf
 
     parser = argparse.ArgumentParser(prog="uavplan-render", description=__doc__)
     parser.add_argument("scene", help="scene config name (conf/scene/NAME.yaml) or a scene YAML path")
@@ -27,10 +33,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--hfov", type=float, default=None, help="horizontal field of view in degrees")
     parser.add_argument("--seed", type=int, default=0, help="the scene seed (${seed} in scene configs)")
     args = parser.parse_args(argv)
-
-    from render import render_flight
-    from scene.camera import Intrinsics
-    from scene.plan import read_viewpoints
 
     try:
         viewpoints, kinds = read_viewpoints(args.viewpoints)
@@ -57,8 +59,6 @@ def main(argv: list[str] | None = None) -> int:
     cfg = OmegaConf.load(REPO / "conf" / "render" / "default.yaml")
     if args.backend:
         cfg.backend = args.backend
-
-    from scene.registry import load_scene
 
     # Scene configs interpolate the run's ${seed}.
     root = OmegaConf.merge({"seed": args.seed}, {"scene": OmegaConf.load(scene_path)})

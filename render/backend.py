@@ -151,8 +151,10 @@ def select_backend(requested: str = "auto") -> str:
 def gl_context_class(backend: str):
     """MuJoCo's ``GLContext`` class for a back-end chosen by ``select_backend``."""
     if backend == "egl":
+        # heavy (mujoco): imported on use
         from mujoco.egl import GLContext
     elif backend == "osmesa":
+        # heavy (mujoco): imported on use
         from mujoco.osmesa import GLContext
     else:
         raise ValueError(f"unknown back-end {backend!r}")

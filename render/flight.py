@@ -16,9 +16,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from render.backend import select_backend
+from render.renderer import SceneRenderer
 from scene.base import Scene
 from scene.camera import Intrinsics, validate_viewpoint_array
 from scene.cameras_file import CAMERAS_FILE, DEFAULT_KIND, write_cameras
+from scene.config import StageSettings, stage_node
 from scene.io import write_atomic
 
 _IMAGE_NAME = re.compile(r"^\d{6}\.png$")
@@ -65,6 +68,7 @@ def _validated_kinds(kinds: Sequence[str] | None, n: int) -> list[str]:
 
 
 def _write_png(path: Path, rgb: np.ndarray, compression: int) -> None:
+    # heavy (cv2): imported on use
     import cv2
 
     # One fixed filter (SUB) and run-length matching halve the encoding CPU of libpng's adaptive
@@ -85,12 +89,16 @@ def _write_png(path: Path, rgb: np.ndarray, compression: int) -> None:
     write_atomic(path, writer)
 
 
+class RenderSettings(StageSettings):
+    """The ``render`` group of a cell (``render_flight`` reads it)."""
+
+
 def render_flight(
     scene: Scene,
     viewpoints,
     intrinsics: Intrinsics,
     out_dir: str | Path,
-    cfg: Mapping,
+    cfg: Mapping | RenderSettings,
     kinds: Sequence[str] | None = None,
 ) -> RenderResult:
     """Render every viewpoint of a flight to ``out_dir/000000.png ...`` and write ``cameras.json``.
@@ -100,7 +108,7 @@ def render_flight(
         viewpoints: (V, 5) array ``x, y, z`` (m), ``yaw_deg, pitch_deg``, in flight order.
         intrinsics: the survey camera.
         out_dir: output folder (created; earlier images and ``cameras.json`` there are replaced).
-        cfg: the ``render`` config.
+        cfg: the ``render`` config (``RenderSettings`` in a cell).
         kinds: optional V labels (``detail``, ``coverage``, ...); ``view`` when omitted.
 
     Returns:
@@ -111,11 +119,9 @@ def render_flight(
             kinds do not match the viewpoints.
         BackendError: no off-screen OpenGL back-end works.
     """
-    from render.backend import select_backend
-    from render.renderer import SceneRenderer
-
     vps = validate_viewpoint_array(viewpoints)
     kinds = _validated_kinds(kinds, len(vps))
+    cfg = stage_node(cfg)
     compression = int(cfg.get("png_compression", 1))
     if not 0 <= compression <= 9:
         raise ValueError(f"render.png_compression must lie in [0, 9], got {compression}")

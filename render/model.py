@@ -11,6 +11,7 @@ is the bottom row of the texture image ((H, W, 3) arrays, row 0 at the top).
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -209,27 +210,9 @@ def scene_bounds(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
-def build_model(scene: Scene, intrinsics: Intrinsics, cfg: Mapping) -> BuiltModel:
-    """Compile ``scene`` into a MuJoCo model with one survey camera (id 0) sized for ``intrinsics``.
-
-    Args:
-        scene: the ground-truth scene (world metres).
-        intrinsics: the camera; the off-screen buffer gets its size and the camera its vertical FOV.
-        cfg: the ``render`` config (lighting, shadows, clipping, anti-aliasing).
-
-    Returns:
-        The compiled model with the time it took (s).
-    """
-    import time
-
-    import mujoco
-
-    start = time.perf_counter()
-    light = LightingConfig.from_cfg(cfg)
-    spec = mujoco.MjSpec()
-    spec.modelname = scene.name
-    crease_deg = float(cfg["crease_angle_deg"])
-
+def _add_parts(spec, mujoco, scene: Scene, crease_deg: float) -> tuple[list[str], int]:
+    """Add the scene's textures, materials, meshes and render-only geoms to ``spec``; the parts'
+    names (geom order) and the largest texture side."""
     colored = [i for i, p in enumerate(scene.parts) if p.texture is None and p.vertex_colors is not None]
     # MuJoCo's renderer holds at most mjMAXTEXTURE textures and mjMAXMATERIAL textured materials.
     n_textures = len(scene.textures) + (1 if colored else 0) + 1
@@ -282,6 +265,31 @@ def build_model(scene: Scene, intrinsics: Intrinsics, cfg: Mapping) -> BuiltMode
         geom.contype = 0
         geom.conaffinity = 0
         names.append(part.name)
+    return names, max_side
+
+
+def build_model(scene: Scene, intrinsics: Intrinsics, cfg: Mapping) -> BuiltModel:
+    """Compile ``scene`` into a MuJoCo model with one survey camera (id 0) sized for ``intrinsics``.
+
+    Args:
+        scene: the ground-truth scene (world metres).
+        intrinsics: the camera; the off-screen buffer gets its size and the camera its vertical FOV.
+        cfg: the ``render`` config (lighting, shadows, clipping, anti-aliasing).
+
+    Returns:
+        The compiled model with the time it took (s).
+    """
+
+    # heavy (mujoco): imported on use
+    import mujoco
+
+    start = time.perf_counter()
+    light = LightingConfig.from_cfg(cfg)
+    spec = mujoco.MjSpec()
+    spec.modelname = scene.name
+    crease_deg = float(cfg["crease_angle_deg"])
+
+    names, max_side = _add_parts(spec, mujoco, scene, crease_deg)
 
     lo, hi = scene_bounds(scene)
     structure_lo = scene.structure_bounds.lo_array

@@ -28,6 +28,7 @@ class SceneRenderer:
             cfg: the ``render`` config (``backend``, lighting, shadows, ...).
         """
         self.backend = select_backend(cfg.get("backend", "auto"))
+        # heavy (mujoco): imported on use
         import mujoco
 
         self._mujoco = mujoco
@@ -65,6 +66,7 @@ class SceneRenderer:
         self._upside_down = np.empty((int(intrinsics.height), int(intrinsics.width), 3), np.uint8)
 
     def _check_texture_limit(self) -> None:
+        # heavy (OpenGL): imported on use
         from OpenGL import GL
 
         limit = int(GL.glGetIntegerv(GL.GL_MAX_TEXTURE_SIZE))

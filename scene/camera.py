@@ -212,14 +212,6 @@ def cam_from_world(viewpoint: Viewpoint | np.ndarray) -> tuple[np.ndarray, np.nd
     return rot, t
 
 
-def cam_from_world_rigid(viewpoint: Viewpoint):
-    """COLMAP ``cam_from_world`` of one viewpoint as a ``pycolmap.Rigid3d``."""
-    import pycolmap
-
-    rot, t = cam_from_world(viewpoint)
-    return pycolmap.Rigid3d(pycolmap.Rotation3d(rot), t)
-
-
 def viewpoint_from_cam_from_world(rotation, translation, roll_tol_deg: float = 0.5) -> Viewpoint:
     """Inverse of ``cam_from_world`` for one pose; raise ValueError if the pose has roll.
 
@@ -249,14 +241,6 @@ def mujoco_camera_pose(viewpoint: Viewpoint | np.ndarray) -> tuple[np.ndarray, n
     row = viewpoint.as_array() if isinstance(viewpoint, Viewpoint) else np.asarray(viewpoint, float)
     world_from_mjcam = world_from_cam_rotation(row[3], row[4]) @ _MJCAM_FROM_CVCAM.T
     return row[:3].copy(), quat_from_matrix(world_from_mjcam)
-
-
-def viewpoint_from_mujoco_camera(pos, quat, roll_tol_deg: float = 0.5) -> Viewpoint:
-    """Inverse of ``mujoco_camera_pose``."""
-    world_from_mjcam = matrix_from_quat(quat)
-    world_from_cvcam = world_from_mjcam @ _MJCAM_FROM_CVCAM
-    rot = world_from_cvcam.T
-    return viewpoint_from_cam_from_world(rot, -rot @ np.asarray(pos, float), roll_tol_deg)
 
 
 def quat_from_matrix(rotation) -> np.ndarray:

@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
+import math
+import typing
 from collections.abc import Mapping
+
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 _REQUIRED = object()
 
@@ -11,8 +16,6 @@ def plain(node):
     """A JSON-able copy of a config node: a Hydra ``DictConfig``/``ListConfig`` resolved and
     converted, a Mapping converted recursively (keys as strings), a list or tuple item by item, and
     anything else as it is (None stays None)."""
-    from omegaconf import DictConfig, ListConfig, OmegaConf
-
     if isinstance(node, DictConfig | ListConfig):
         return OmegaConf.to_container(node, resolve=True)
     if isinstance(node, Mapping):
@@ -20,6 +23,36 @@ def plain(node):
     if isinstance(node, list | tuple):
         return type(node)(plain(v) for v in node)
     return node
+
+
+def detached(node) -> DictConfig:
+    """A config group apart from the run config it came from: resolved (no interpolation reaches
+    back into the run config), in struct mode (a key it lacks is an error, as in the run config)."""
+    out = OmegaConf.create(plain(node))
+    OmegaConf.set_struct(out, True)
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class StageSettings:
+    """One stage's config group, detached from the run config (``detached``), built once at the top
+    of a cell (``pipeline.settings.cell_settings``): what the stage reads, and nothing else.
+
+    Attributes:
+        node: the group, resolved.
+    """
+
+    node: DictConfig
+
+    @classmethod
+    def of(cls, node) -> StageSettings:
+        return cls(detached(node))
+
+
+def stage_node(cfg):
+    """The config group a stage reads: a ``StageSettings``' node, or ``cfg`` itself (a mapping from
+    a caller outside a cell: a benchmark, a diagnostic, a test)."""
+    return cfg.node if isinstance(cfg, StageSettings) else cfg
 
 
 def setting(default=_REQUIRED, *, low=None, above=None, high=None, choices=None, odd=False, multiple_of=None):
@@ -30,8 +63,6 @@ def setting(default=_REQUIRED, *, low=None, above=None, high=None, choices=None,
         low, high: inclusive bounds; above: an exclusive lower bound.
         choices: the allowed values; odd: an odd integer; multiple_of: an integer multiple of it.
     """
-    import dataclasses
-
     rules = {"low": low, "above": above, "high": high, "choices": choices, "multiple_of": multiple_of}
     metadata = {k: v for k, v in rules.items() if v is not None} | ({"odd": True} if odd else {})
     if default is _REQUIRED:
@@ -51,8 +82,6 @@ _KIND_WORDS = {
 
 def _fits(value, kind) -> bool:
     """Whether a config value is of a settings field's type (an int is a float, a bool neither)."""
-    import math
-
     if kind is bool:
         return isinstance(value, bool)
     if kind is int:
@@ -95,9 +124,6 @@ def typed_settings(cls, node, prefix: str):
     ``cls.__post_init__`` checks what involves several fields. Every error is a ``ValueError`` that
     names the setting (``prefix.key``).
     """
-    import dataclasses
-    import typing
-
     if not isinstance(node, Mapping):
         raise ValueError(f"{prefix} must be a mapping, got {node!r}")
     node = plain(node)

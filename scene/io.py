@@ -8,6 +8,8 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
 
 def _process_umask() -> int:
     mask = os.umask(0)
@@ -54,7 +56,6 @@ def write_json_atomic(path: str | os.PathLike, record) -> Path:
 
 
 def _to_builtin(value):
-    import numpy as np
 
     if isinstance(value, np.generic):
         return value.item()

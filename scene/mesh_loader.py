@@ -26,6 +26,7 @@ import os
 import re
 import time
 import xml.etree.ElementTree as ET
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import cv2
@@ -91,30 +92,11 @@ class _AssetResolver(trimesh.resolvers.FilePathResolver):
         return data
 
 
-def load_mesh_scene(
-    path: str | os.PathLike,
-    up_axis: str = "z",
-    scale: float = 1.0,
-    add_detail: str | bool = "auto",
-    apron_m: float = 3.0,
-    ground: bool = True,
-    ground_margin_m: float = 30.0,
-    detail_strength: float = 0.3,
-    seed: int = 0,
-    cache_dir: str | os.PathLike | None = None,
-    name: str | None = None,
-    detail_above_texel_m: float = 0.03,
-    material_texel_m: float = 0.01,
-    ground_height: str | float = "lowest",
-    ground_snap_m: float = 1.5,
-    flip_normals: bool = False,
-    drop_invalid_faces: bool = False,
-    check_size: bool = True,
-) -> Scene:
-    """Load a mesh file as a Scene in metres, Z up, ground at z = 0.
+@dataclass(frozen=True)
+class MeshSceneSpec:
+    """How a mesh file becomes a ``Scene`` (``conf/scene/mesh.yaml`` lists these, beside ``path``).
 
-    Args:
-        path: mesh file (OBJ/MTL, GLB/glTF, PLY, DAE, STL, OFF) with texture or vertex colours.
+    Attributes:
         up_axis: the file's up axis, ``z`` or ``y``.
         scale: extra factor to metres, applied after the file's own unit (Collada ``<unit>``).
         add_detail: ``auto`` (fine procedural detail on maps coarser than ``detail_above_texel_m``
@@ -123,8 +105,6 @@ def load_mesh_scene(
         ground: add a textured ground plane reaching ``ground_margin_m`` beyond the structure.
         detail_strength: relative amplitude of the detail (0.3 = +-30 % brightness at 1 sigma).
         seed: seed of the detail, the materials and the ground texture.
-        cache_dir: where generated textures are cached (``cache_dir/textures``), None for no cache.
-        name: scene name (default: the file's stem).
         detail_above_texel_m: ``auto`` detail threshold (m per texel on the surface).
         material_texel_m: texel size (m) of the materials of untextured parts.
         ground_height: ``lowest`` (the lowest point), ``footprint`` (the height under most of the
@@ -134,6 +114,68 @@ def load_mesh_scene(
         flip_normals: reverse every face (a model exported with inward normals).
         drop_invalid_faces: drop faces that use NaN or infinite vertices instead of refusing them.
         check_size: refuse a model over 2 km or under 1 m across (a sign of wrong units).
+    """
+
+    up_axis: str = "z"
+    scale: float = 1.0
+    add_detail: str | bool = "auto"
+    apron_m: float = 3.0
+    ground: bool = True
+    ground_margin_m: float = 30.0
+    detail_strength: float = 0.3
+    seed: int = 0
+    detail_above_texel_m: float = 0.03
+    material_texel_m: float = 0.01
+    ground_height: str | float = "lowest"
+    ground_snap_m: float = 1.5
+    flip_normals: bool = False
+    drop_invalid_faces: bool = False
+    check_size: bool = True
+
+    @classmethod
+    def options(cls) -> set[str]:
+        """The option names a scene config may set."""
+        return {f.name for f in fields(cls)}
+
+    def check(self) -> None:
+        """Refuse a bad option (``ValueError`` naming it)."""
+        if self.up_axis not in ("z", "y"):
+            raise ValueError(f"scene.up_axis must be 'z' or 'y', got {self.up_axis!r}")
+        if not (np.isfinite(self.scale) and self.scale > 0):
+            raise ValueError(f"scene.scale must be a positive number, got {self.scale!r}")
+        if self.apron_m < 0 or self.ground_margin_m < self.apron_m:
+            raise ValueError(
+                f"need 0 <= apron_m ({self.apron_m}) <= ground_margin_m ({self.ground_margin_m})"
+            )
+        if str(self.add_detail).lower() not in ("auto", "true", "false"):
+            raise ValueError(f"scene.add_detail must be auto, true or false, got {self.add_detail!r}")
+
+
+@dataclass
+class _Model:
+    """A mesh file read into metres, Z up: its geometries and their (vertices, faces)."""
+
+    geometries: list
+    model: list[tuple[np.ndarray, np.ndarray]]
+    factor: float
+    lo: np.ndarray
+    hi: np.ndarray
+    resolver: _AssetResolver
+
+
+def load_mesh_scene(
+    path: str | os.PathLike,
+    spec: MeshSceneSpec | None = None,
+    cache_dir: str | os.PathLike | None = None,
+    name: str | None = None,
+) -> Scene:
+    """Load a mesh file as a Scene in metres, Z up, ground at z = 0.
+
+    Args:
+        path: mesh file (OBJ/MTL, GLB/glTF, PLY, DAE, STL, OFF) with texture or vertex colours.
+        spec: how to read and dress it (``MeshSceneSpec``; None: its defaults).
+        cache_dir: where generated textures are cached (``cache_dir/textures``), None for no cache.
+        name: scene name (default: the file's stem).
 
     Raises:
         FileNotFoundError: the file or a texture it needs does not exist.
@@ -141,6 +183,7 @@ def load_mesh_scene(
             wrong units, NaN vertices, inward normals (each message names the option that fixes it).
     """
     started = time.perf_counter()
+    spec = MeshSceneSpec() if spec is None else spec
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"mesh file not found: {path}")
@@ -150,16 +193,56 @@ def load_mesh_scene(
         raise ValueError(
             f"unsupported mesh format {path.suffix!r} of {path}; supported: {SUPPORTED_SUFFIXES}"
         )
-    if up_axis not in ("z", "y"):
-        raise ValueError(f"scene.up_axis must be 'z' or 'y', got {up_axis!r}")
-    if not (np.isfinite(scale) and scale > 0):
-        raise ValueError(f"scene.scale must be a positive number, got {scale!r}")
-    if apron_m < 0 or ground_margin_m < apron_m:
-        raise ValueError(f"need 0 <= apron_m ({apron_m}) <= ground_margin_m ({ground_margin_m})")
+    spec.check()
+    add_detail = str(spec.add_detail).lower()
+    read = _read_model(path, spec)
+    base = _ground_base(read, spec.ground_height)
+    lo, hi = read.lo, read.hi
+    shift = -np.array([0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), base])
+    stem = name or path.stem
+    parts, textures, report, pads = _dressed_parts(read, shift, stem, spec, add_detail, cache_dir)
+    if not parts:
+        raise ValueError(f"mesh file {path} has no faces above the ground")
+    problems = _texture_problems(read.resolver, read.geometries)
+    if problems:
+        raise problems[0]
 
-    if str(add_detail).lower() not in ("auto", "true", "false"):
-        raise ValueError(f"scene.add_detail must be auto, true or false, got {add_detail!r}")
-    add_detail = str(add_detail).lower()
+    structure = Box.from_points(np.concatenate([p.vertices for p in parts]))
+    factor = read.factor
+    info = {
+        "source": str(path),
+        "unit_to_m": _unit_to_metres(path),
+        "unit_name": _collada_unit_name(path) if path.suffix.lower() == ".dae" else None,
+        "scale": float(spec.scale),
+        "up_axis": spec.up_axis,
+        "add_detail": add_detail,
+        "detail_rule": f"maps coarser than {spec.detail_above_texel_m} m/texel or plainer than "
+        f"{PLAIN_MAP_LAPLACIAN} grey levels of median |Laplacian|",
+        "ground_height_in_file_m": float(base / factor) if factor else None,
+        "shift_m": [float(v) for v in shift],
+        "n_parts_kept_maps": len(report["kept_maps"]),
+        "n_parts_detailed_maps": len(report["detailed_maps"]),
+        "n_parts_materials": len(report["materials"]),
+        "n_plinths": len(pads),
+        "n_faces_structure": int(sum(len(p.faces) for p in parts)),
+        "extent_m": [float(v) for v in structure.extent],
+    }
+    if spec.ground:
+        info["ground_parts"] = _add_ground(parts, textures, structure, stem, spec, cache_dir)
+    apron_m = spec.apron_m
+    evaluation = Box(
+        (structure.lo[0] - apron_m, structure.lo[1] - apron_m, -0.5),
+        (structure.hi[0] + apron_m, structure.hi[1] + apron_m, structure.hi[2] + 1.0),
+    )
+    info["n_faces"] = int(sum(len(p.faces) for p in parts))
+    info["texture_bytes"] = int(sum(t.nbytes for t in textures.values()))
+    info["build_seconds"] = round(time.perf_counter() - started, 3)
+    return Scene(stem, parts, textures, structure, evaluation, seed=None, info=info)
+
+
+def _read_model(path: Path, spec: MeshSceneSpec) -> _Model:
+    """The file's faced geometries, in metres with Z up (unit, scale, up axis, flipped normals),
+    with the extent of the vertices its valid faces use; a model of wrong units refused."""
     resolver = _AssetResolver(path)
     try:
         loaded = trimesh.load(str(path), resolver=resolver, process=False)
@@ -170,13 +253,13 @@ def load_mesh_scene(
     if not geometries:
         raise ValueError(f"mesh file {path} has no faces")
 
-    factor = _unit_to_metres(path) * float(scale)
-    transform = np.eye(3) if up_axis == "z" else np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
-    geometry_faces = [_valid_faces(g, path, drop_invalid_faces) for g in geometries]
+    factor = _unit_to_metres(path) * float(spec.scale)
+    transform = np.eye(3) if spec.up_axis == "z" else np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
+    geometry_faces = [_valid_faces(g, path, spec.drop_invalid_faces) for g in geometries]
     model = [
         (
             np.nan_to_num(np.asarray(g.vertices, float)) @ transform.T * factor,
-            f[:, ::-1] if flip_normals else f,
+            f[:, ::-1] if spec.flip_normals else f,
         )
         for g, f in zip(geometries, geometry_faces, strict=True)
     ]
@@ -184,26 +267,35 @@ def load_mesh_scene(
     if len(used) == 0:
         raise ValueError(f"mesh file {path} has no valid faces")
     lo, hi = used.min(0), used.max(0)
-    _check_model(path, model, hi - lo, factor, check_size, flip_normals)
+    _check_model(path, model, hi - lo, factor, spec.check_size, spec.flip_normals)
+    return _Model(geometries, model, factor, lo, hi, resolver)
+
+
+def _ground_base(read: _Model, ground_height: str | float) -> float:
+    """The height (model frame, metres) that becomes z = 0."""
     if ground_height == "lowest":
-        base = lo[2]
-    elif ground_height == "footprint":
-        base = footprint_ground_height(
+        return read.lo[2]
+    if ground_height == "footprint":
+        model = read.model
+        return footprint_ground_height(
             trimesh.Trimesh(np.concatenate([v for v, _ in model]), _stacked_faces(model), process=False)
         )
-    else:
-        try:
-            base = float(ground_height)
-        except (TypeError, ValueError):
-            raise ValueError(
-                f"scene.ground_height must be lowest, footprint or a height in metres, got {ground_height!r}"
-            ) from None
-    shift = -np.array([0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), base])
+    try:
+        return float(ground_height)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"scene.ground_height must be lowest, footprint or a height in metres, got {ground_height!r}"
+        ) from None
 
+
+def _dressed_parts(read: _Model, shift, stem: str, spec: MeshSceneSpec, add_detail: str, cache_dir):
+    """The model's parts moved by ``shift``, above the ground: textured ones keep their maps (with
+    detail where coarse or plain), coloured scans their colours, the rest materials by surface
+    class; plinths under floating parts. Returns the parts, textures, report and plinths."""
+    geometries, model, seed = read.geometries, read.model, spec.seed
     parts: list[MeshPart] = []
     textures: dict[str, np.ndarray] = {}
     image_keys: dict[str, str] = {}  # image content hash -> texture key (shared images load once)
-    stem = name or path.stem
     n_images = len({_image_hash(_visual(g)[1]) for g in geometries if _visual(g)[1] is not None})
     # Detail upsampling budget: one or a few maps may grow to 4096 px, many maps to 2048 px.
     max_side = _MAX_DETAIL_SIDE if n_images <= 4 else _MAX_DETAIL_SIDE // 2
@@ -226,7 +318,8 @@ def load_mesh_scene(
             key = image_keys.get(digest)
             texel = map_texel_m(vertices, faces, uv, image.size)
             coarse = add_detail == "true" or (
-                add_detail == "auto" and (texel > detail_above_texel_m or _plain(image, digest, plainness))
+                add_detail == "auto"
+                and (texel > spec.detail_above_texel_m or _plain(image, digest, plainness))
             )
             if key is None or (coarse and not key.endswith("_detail")):
                 key = f"{stem}_tex{len(image_keys)}" + ("_detail" if coarse else "")
@@ -234,7 +327,7 @@ def load_mesh_scene(
                 rgb = np.asarray(image.convert("RGB"))
                 if coarse:
                     up = max(1.0, min(4.0, max_side / max(rgb.shape[:2])))
-                    rgb = detail_overlay(rgb, material_seed(seed, key), detail_strength, up)
+                    rgb = detail_overlay(rgb, material_seed(seed, key), spec.detail_strength, up)
                 textures[key] = np.ascontiguousarray(rgb)
             report["detailed_maps" if key.endswith("_detail") else "kept_maps"].append(part_name)
             # Faces keep the file's UVs; trimesh already duplicated vertices at UV seams.
@@ -242,13 +335,13 @@ def load_mesh_scene(
         elif color is not None and color.ndim == 2:  # per-vertex colours (a coloured scan): kept
             parts.append(MeshPart(part_name, vertices, faces, vertex_colors=color[..., :3]))
         else:  # no texture: uniform grey or one flat colour
-            parts += material_parts(part_name, vertices, faces, color, stem, material_texel_m, rng)
+            parts += material_parts(part_name, vertices, faces, color, stem, spec.material_texel_m, rng)
             report["materials"].append(part_name)
     if report["materials"]:
         textures.update(class_textures(stem, seed, cache_dir))
-    pads = floating_pads(placed, ground_snap_m, support=support) if ground else []
+    pads = floating_pads(placed, spec.ground_snap_m, support=support) if spec.ground else []
     for k, (vertices, faces) in enumerate(pads):
-        parts += material_parts(f"{stem}_pad{k}", vertices, faces, None, stem, material_texel_m, rng)
+        parts += material_parts(f"{stem}_pad{k}", vertices, faces, None, stem, spec.material_texel_m, rng)
     if pads and not report["materials"]:
         textures.update(class_textures(stem, seed, cache_dir))
     log.info(
@@ -257,61 +350,32 @@ def load_mesh_scene(
         stem,
         len(report["kept_maps"]),
         len(report["detailed_maps"]),
-        detail_above_texel_m,
+        spec.detail_above_texel_m,
         len(report["materials"]),
         f" ({', '.join(report['materials'][:8])}{', ...' if len(report['materials']) > 8 else ''})"
         if report["materials"]
         else "",
         len(pads),
     )
-    if not parts:
-        raise ValueError(f"mesh file {path} has no faces above the ground")
-    problems = _texture_problems(resolver, geometries)
-    if problems:
-        raise problems[0]
+    return parts, textures, report, pads
 
-    structure = Box.from_points(np.concatenate([p.vertices for p in parts]))
-    info = {
-        "source": str(path),
-        "unit_to_m": _unit_to_metres(path),
-        "unit_name": _collada_unit_name(path) if path.suffix.lower() == ".dae" else None,
-        "scale": float(scale),
-        "up_axis": up_axis,
-        "add_detail": add_detail,
-        "detail_rule": f"maps coarser than {detail_above_texel_m} m/texel or plainer than "
-        f"{PLAIN_MAP_LAPLACIAN} grey levels of median |Laplacian|",
-        "ground_height_in_file_m": float(base / factor) if factor else None,
-        "shift_m": [float(v) for v in shift],
-        "n_parts_kept_maps": len(report["kept_maps"]),
-        "n_parts_detailed_maps": len(report["detailed_maps"]),
-        "n_parts_materials": len(report["materials"]),
-        "n_plinths": len(pads),
-        "n_faces_structure": int(sum(len(p.faces) for p in parts)),
-        "extent_m": [float(v) for v in structure.extent],
-    }
-    if ground:
-        mat = Material("ground", "ground_dry", 0.025, 2048)
-        tiles = ground_tiles(
-            structure.lo_array[:2] - ground_margin_m,
-            structure.hi_array[:2] + ground_margin_m,
-            "ground",
-            tile_m=mat.texel_m * mat.size,
-            cell_m=4.0,
-        )
-        info["ground_parts"] = [tile.material for tile in tiles]
-        for tile in tiles:  # one texture per tile (own seed), so no patch of ground repeats
-            parts.append(_ground_part(tile, mat, seed))
-            textures[tile.material] = cached_texture(
-                stem, tile.material, mat.preset, mat.size, material_seed(seed, tile.material), cache_dir
-            )
-    evaluation = Box(
-        (structure.lo[0] - apron_m, structure.lo[1] - apron_m, -0.5),
-        (structure.hi[0] + apron_m, structure.hi[1] + apron_m, structure.hi[2] + 1.0),
+
+def _add_ground(parts: list, textures: dict, structure: Box, stem: str, spec: MeshSceneSpec, cache_dir):
+    """Add the textured ground tiles (``ground_margin_m`` beyond the structure); their materials."""
+    mat = Material("ground", "ground_dry", 0.025, 2048)
+    tiles = ground_tiles(
+        structure.lo_array[:2] - spec.ground_margin_m,
+        structure.hi_array[:2] + spec.ground_margin_m,
+        "ground",
+        tile_m=mat.texel_m * mat.size,
+        cell_m=4.0,
     )
-    info["n_faces"] = int(sum(len(p.faces) for p in parts))
-    info["texture_bytes"] = int(sum(t.nbytes for t in textures.values()))
-    info["build_seconds"] = round(time.perf_counter() - started, 3)
-    return Scene(stem, parts, textures, structure, evaluation, seed=None, info=info)
+    for tile in tiles:  # one texture per tile (own seed), so no patch of ground repeats
+        parts.append(_ground_part(tile, mat, spec.seed))
+        textures[tile.material] = cached_texture(
+            stem, tile.material, mat.preset, mat.size, material_seed(spec.seed, tile.material), cache_dir
+        )
+    return [tile.material for tile in tiles]
 
 
 def _valid_faces(g: trimesh.Trimesh, path: Path, drop: bool) -> np.ndarray:

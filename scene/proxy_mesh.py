@@ -11,5 +11,5 @@ keys below; a planner that reads one must work without it (a degraded ground tru
 PROXY_CLOUD_KEY = "exploration_cloud"
 # The exploratory flight's registered views, {"recon_dir": <recon folder holding sparse/>,
 # "image_dir": <its images>}: its poses and images, for ours_plus' photo-consistency evidence
-# (planner/photo_evidence.py).
+# (planner/ours/photo_evidence.py).
 PROXY_VIEWS_KEY = "exploration_views"

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from planner.lawnmower import plan, plan_exploration, structure_bounds_from_proxy
+from planner.lawnmower.lawnmower import plan, plan_exploration, structure_bounds_from_proxy
 from scene.base import Box
 from scene.camera import Intrinsics, project_points, world_from_cam_rotation
 from scene.plan import PlanningError
@@ -158,7 +158,7 @@ def test_structure_inside_one_footprint_is_refused():
 
 
 def test_orbit_ring_keeps_its_distance_from_the_footprint_and_faces_it():
-    from planner.lawnmower import orbit_ring
+    from planner.lawnmower.lawnmower import orbit_ring
 
     lo, hi, d, spacing = np.array([-5.0, -2.0]), np.array([5.0, 2.0]), 3.0, 1.5
     xy, inward = orbit_ring(lo, hi, d, spacing)

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from planner import smith
-from planner.smith_directions import DirectionSearch
-from planner.smith_heuristic import objective_terms, pair_terms, reconstructability
+from planner.smith import smith
+from planner.smith.smith_directions import DirectionSearch
+from planner.smith.smith_heuristic import objective_terms, pair_terms, reconstructability
 from planner.visibility import VisibilityLimits, VisibilityModel
 from scene.base import Box
 from scene.camera import Intrinsics, forward_vectors, look_at, project_points

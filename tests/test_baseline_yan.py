@@ -9,8 +9,8 @@ import pytest
 import scipy.sparse as sparse
 import trimesh
 
-from planner import yan
 from planner.visibility import VisibilityLimits, VisibilityModel
+from planner.yan import yan
 from scene.camera import Intrinsics, look_at
 from scene.plan import PlanningError, read_viewpoints, write_plan
 

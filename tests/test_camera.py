@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from scene.camera import (
+    _MJCAM_FROM_CVCAM,
     Intrinsics,
     Viewpoint,
     cam_from_world,
@@ -14,7 +15,6 @@ from scene.camera import (
     project_points,
     quat_from_matrix,
     viewpoint_from_cam_from_world,
-    viewpoint_from_mujoco_camera,
     world_from_cam_rotation,
 )
 
@@ -25,6 +25,14 @@ POSES = [
     Viewpoint(10.0, 10.0, 8.0, -135.0, 20.0),
     Viewpoint(3.0, 4.0, 2.0, 179.0, -10.0),
 ]
+
+
+def viewpoint_from_mujoco_camera(pos, quat, roll_tol_deg: float = 0.5) -> Viewpoint:
+    """Inverse of ``mujoco_camera_pose`` (the renderer needs only the forward way)."""
+    world_from_mjcam = matrix_from_quat(quat)
+    world_from_cvcam = world_from_mjcam @ _MJCAM_FROM_CVCAM
+    rot = world_from_cvcam.T
+    return viewpoint_from_cam_from_world(rot, -rot @ np.asarray(pos, float), roll_tol_deg)
 
 
 def test_intrinsics_focal_and_fov():
@@ -95,14 +103,13 @@ def test_look_at_projects_target_to_principal_point():
 
 def test_projection_matches_pycolmap():
     pycolmap = pytest.importorskip("pycolmap")
-    from scene.camera import cam_from_world_rigid
-
     cam = Intrinsics(800, 600, 70.0)
     rng = np.random.default_rng(1)
     vp = POSES[1]
     pts = vp.position + 10 * forward_vectors(vp.yaw_deg, vp.pitch_deg) + rng.normal(scale=2.0, size=(20, 3))
     ours, _ = project_points(pts, vp, cam)
-    rigid = cam_from_world_rigid(vp)
+    rot, t = cam_from_world(vp)
+    rigid = pycolmap.Rigid3d(pycolmap.Rotation3d(rot), t)
     colmap_cam = cam.to_colmap()
     theirs = np.array([colmap_cam.img_from_cam(rigid * p) for p in pts]).reshape(-1, 2)
     np.testing.assert_allclose(ours[0], theirs, atol=1e-6)

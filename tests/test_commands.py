@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -14,24 +15,24 @@ import yaml
 
 from benchmarks.cli import COMMANDS as BENCH_COMMANDS
 from experiments.cli import COMMANDS as STUDY_COMMANDS
+from experiments.diagnose_cli import COMMANDS as DIAGNOSE_COMMANDS
 from pipeline.cli import dispatch
 from scene.plan import Plan, read_viewpoints, write_plan
 
 ROOT = Path(__file__).resolve().parents[1]
-BIN = Path(sys.executable).parent
-COMMANDS = (
-    "uavplan",
-    "uavplan-study",
-    "uavplan-bench",
-    "uavplan-mission",
-    "uavplan-evaluate",
-    "uavplan-render",
-)
+# The console commands as pyproject.toml declares them, run from this checkout's code (an installed
+# script may point at another checkout, or not exist yet).
+SCRIPTS = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+COMMANDS = tuple(SCRIPTS)
 RESULTS_FIXTURE = ROOT / "tests" / "data" / "results_study"
 
 
 def command(name: str, *args: str, timeout: int = 300) -> subprocess.CompletedProcess:
-    return subprocess.run([str(BIN / name), *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout)
+    module, function = SCRIPTS[name].split(":")
+    call = f"import sys; sys.argv[0] = {name!r}; from {module} import {function}; sys.exit({function}())"
+    return subprocess.run(
+        [sys.executable, "-c", call, *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout
+    )
 
 
 @pytest.mark.parametrize("name", COMMANDS)
@@ -42,7 +43,12 @@ def test_every_console_command_answers_help(name):
 
 
 @pytest.mark.parametrize(
-    ("prog", "commands"), [("uavplan-study", STUDY_COMMANDS), ("uavplan-bench", BENCH_COMMANDS)]
+    ("prog", "commands"),
+    [
+        ("uavplan-study", STUDY_COMMANDS),
+        ("uavplan-diagnose", DIAGNOSE_COMMANDS),
+        ("uavplan-bench", BENCH_COMMANDS),
+    ],
 )
 def test_every_sub_command_answers_help(prog, commands, capsys):
     for name in commands:

@@ -17,7 +17,8 @@ import yaml
 pycolmap = pytest.importorskip("pycolmap")
 
 from benchmarks.dense_cuda import read_ply_xyz  # noqa: E402
-from reconstruct.dense import compute_depth_maps_cpu, compute_depth_maps_cuda, fuse  # noqa: E402
+from reconstruct.dense import fuse  # noqa: E402
+from reconstruct.stereo.depth_maps import compute_depth_maps_cpu, compute_depth_maps_cuda  # noqa: E402
 from reconstruct.workspace import prepare_workspace, read_views  # noqa: E402
 from scene.camera import Intrinsics, cam_from_world  # noqa: E402
 from tests.workspaces import shared_point_model  # noqa: E402

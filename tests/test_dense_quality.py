@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from reconstruct.dense import fuse, normals_from_depth
+from reconstruct.dense import fuse
 from reconstruct.depth_filter import edge_pixels, geometric_support
 from reconstruct.fusion_support import supported_points
 from reconstruct.oracle import oracle_view
+from reconstruct.stereo.matching import normals_from_depth
 from reconstruct.stereo_noise import stereo_depth_sigma
 from reconstruct.workspace import View, write_maps
 from scene.camera import Intrinsics, cam_from_world, look_at
@@ -466,7 +467,7 @@ SGBM = {
 def slanted_pair_disparity_error(gradient_px_per_row: float, mirror_pass: bool) -> float:
     """Median disparity error (px) of SGBM (3-way, the back-end's parameters) on a rectified pair of
     a textured surface whose disparity is 30 px at mid-height and changes by ``gradient`` a row."""
-    from reconstruct.dense import sgbm_disparity, sgbm_matcher
+    from reconstruct.stereo.matching import sgbm_disparity, sgbm_matcher
 
     rng = np.random.default_rng(0)
     height, width = 240, 320
@@ -500,7 +501,7 @@ def foreshortened_pair_held(gradient: float, p1_per_block_pixel: float) -> float
     """Share of a rectified pair's pixels SGBM (both passes) matches within 0.5 px, on a faint, noisy
     texture (20 grey levels, noise 2) whose disparity grows by ``gradient`` px a px along the rows:
     the partner sees the surface foreshortened by 1 - gradient (it stands nearer to it)."""
-    from reconstruct.dense import sgbm_disparity, sgbm_matcher
+    from reconstruct.stereo.matching import sgbm_disparity, sgbm_matcher
 
     rng = np.random.default_rng(0)
     height, width = 240, 320

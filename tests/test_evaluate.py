@@ -16,7 +16,6 @@ from omegaconf import OmegaConf
 from evaluate import record as run_record
 from evaluate.__main__ import _load_group_config
 from evaluate.__main__ import main as cli_main
-from evaluate.cost import collect_cost_metrics
 from evaluate.geometry import clip_mesh_to_box, point_triangle_distance, sample_surface
 from evaluate.loading import ReconstructionFileError, load_reconstruction
 from evaluate.metrics import (
@@ -33,8 +32,6 @@ from evaluate.settings import EvaluationSettings, threshold_key
 from evaluate.visualise import VIEW_NAMES, error_colors, save_view_png, splat, view_pixels
 from scene.base import Box
 from scene.camera import Intrinsics
-from scene.cameras_file import write_cameras
-from scene.plan import Plan, write_plan
 
 ROOT = Path(__file__).resolve().parents[1]
 BIG_BOX = Box((-10.0, -10.0, -10.0), (10.0, 10.0, 10.0))
@@ -415,39 +412,6 @@ def test_metrics_record_the_code_revision(tmp_path, monkeypatch):
         assert run_record.code_revision()["code_commit"] is None  # cached, not re-read
     finally:
         run_record.code_revision.cache_clear()
-
-
-def test_collect_cost_metrics_from_a_run_directory(tmp_path):
-    viewpoints = np.array([[0, 0, 10, 0, -90], [30, 0, 10, 0, -90], [30, 40, 10, 0, -90]], float)
-    write_plan(Plan(viewpoints, ["grid"] * 3, "lawnmower", {"timings_s": {"total": 2.5}}), tmp_path / "plan")
-    write_cameras(
-        tmp_path / "images",
-        ["a.png", "b.png", "c.png"],
-        viewpoints,
-        Intrinsics(64, 48, 60.0),
-        ["grid"] * 3,
-        {"render_time_s": 1.5},
-    )
-    (tmp_path / "recon").mkdir()
-    recon = {
-        "n_images": 3,
-        "n_registered": 2,
-        "extraction_time_s": 1.0,
-        "matching_time_s": 2.0,
-        "mapping_time_s": 3.0,
-        "dense_time_s": 4.0,
-        "align_cpu_s": 11.0,
-        "dense_cpu_s": 7.5,
-    }
-    (tmp_path / "recon" / "recon.json").write_text(json.dumps(recon))
-    cost = collect_cost_metrics(tmp_path)
-    assert cost["flight_length_m"] == pytest.approx(70.0)
-    assert cost["n_viewpoints"] == 3 and cost["n_images"] == 3 and cost["n_registered"] == 2
-    assert cost["registered_fraction"] == pytest.approx(2 / 3)
-    assert cost["align_time_s"] == pytest.approx(6.0)
-    assert (cost["plan_time_s"], cost["render_time_s"], cost["dense_time_s"]) == (2.5, 1.5, 4.0)
-    assert (cost["align_cpu_s"], cost["dense_cpu_s"]) == (11.0, 7.5)
-    assert collect_cost_metrics(tmp_path / "nothing") == dict.fromkeys(cost)
 
 
 def test_cli_scores_a_file_and_rejects_bad_input(tmp_path, capsys, sphere):

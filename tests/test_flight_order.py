@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from drone.model import DroneSettings, flight_summary
-from planner.trajectory import flight_time_costs, order_by_flight_time, tour_time_s
+from planner.trajectory import flight_time_costs, order_by_flight_time
 
 DRONE = replace(
     DroneSettings.default(),
@@ -25,6 +25,13 @@ SQUARE = np.array(
     [[0, 0, 10, 0, -45], [20, 0, 40, 0, -45], [20, 20, 10, 0, -45], [0, 20, 10, 0, -45]], float
 )  # A, B, C, D
 TAKEOFF = np.zeros(3)
+
+
+def tour_time_s(viewpoints: np.ndarray, order, takeoff: np.ndarray, drone) -> float:
+    """Seconds of the closed flight take-off -> ``order`` -> take-off on ``flight_time_costs``."""
+    cost = flight_time_costs(viewpoints, takeoff, drone)
+    path = [0, *(np.asarray(order, int) + 1), 0]
+    return float(sum(cost[a, b] for a, b in zip(path[:-1], path[1:], strict=True)))
 
 
 def test_leg_times_are_the_hand_values():

@@ -8,7 +8,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from experiments.fronts import cost_to_reach, front_points, front_table, plot_fronts, value_at
+from experiments.front_core import cost_to_reach, front_points, front_table, value_at
+from experiments.fronts import plot_fronts
 
 IMAGES = [100, 200, 400]
 COMP = [40.0, 60.0, 80.0]
@@ -165,7 +166,8 @@ def _seed_runs() -> pd.DataFrame:
 
 
 def test_a_claim_holds_on_every_seed_or_is_a_tie():
-    from experiments.fronts import Question, seed_claims
+    from experiments.front_core import Question
+    from experiments.fronts import seed_claims
 
     questions = [Question("completeness", 200), Question("completeness", 100), Question("images", 85.0)]
     questions += [Question("images", 75.0), Question("completeness", 300)]
@@ -198,7 +200,8 @@ def test_a_claim_holds_on_every_seed_or_is_a_tie():
 
 
 def test_each_answer_is_a_range_over_the_seeds():
-    from experiments.fronts import Question, seed_ranges
+    from experiments.front_core import Question
+    from experiments.fronts import seed_ranges
 
     questions = [Question("images", 85.0), Question("completeness", 200), Question("images", 95.0)]
     ranges = seed_ranges(_seed_runs(), questions).set_index("method")

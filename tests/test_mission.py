@@ -226,6 +226,19 @@ def test_wpml_round_trip(tmp_path):
     np.testing.assert_allclose(coords, np.column_stack([lon, lat]), atol=1e-9)
 
 
+def test_wpml_keeps_kml_as_its_default_namespace_after_a_collada_mesh_is_read(tmp_path):
+    # pycollada registers the Collada namespace as ElementTree's (global) default one; DJI's
+    # controllers read waylines written with KML's default namespace and the wpml: prefix.
+    import collada  # noqa: F401  (its import registers the Collada namespace)
+
+    ET.register_namespace("", "http://www.collada.org/2005/11/COLLADASchema")
+    _, (path,) = export_mission(plan_views(), origin_30(), drone(), "wpml", tmp_path / "m.kmz")
+    with zipfile.ZipFile(path) as archive:
+        text = archive.read("wpmz/waylines.wpml").decode()
+    assert text.count("<Placemark>") == len(plan_views())
+    assert "ns0:" not in text and "<wpml:index>" in text
+
+
 def test_450_waypoints_export_as_3_wpml_files_of_at_most_200(tmp_path):
     views = plan_views(450, seed=1)
     d = drone(endurance_s=1e6)  # only the controller's limit splits

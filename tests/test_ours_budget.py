@@ -15,7 +15,7 @@ from drone.model import DroneSettings
 from pipeline.settings import SettingsError, cell_settings, planner_params
 from planner.heuristics import HeuristicParams
 from planner.objective import ObjectiveState
-from planner.ours_budget import BudgetLimit, fit_budget
+from planner.ours.ours_budget import BudgetLimit, fit_budget
 from planner.sampling import sample_surface
 from planner.visibility import VisibilityLimits, VisibilityModel
 from scene.camera import Intrinsics, look_at

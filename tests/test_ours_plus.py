@@ -10,9 +10,9 @@ import pytest
 import yaml
 
 from drone.model import DroneSettings, split_flights
-from planner import ours, ours_plus
-from planner.evidence import EvidenceSettings, evidence_signals, sample_weights
-from planner.flight_time_term import FlightTimeTerm, greedy_order
+from planner.ours import ours, ours_plus
+from planner.ours.evidence import EvidenceSettings, evidence_signals, sample_weights
+from planner.ours.flight_time_term import FlightTimeTerm, greedy_order
 from scene.plan import PlanningError
 from scene.proxy_mesh import PROXY_CLOUD_KEY
 from tests.planner_scenes import box_building

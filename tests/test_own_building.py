@@ -10,7 +10,7 @@ from omegaconf import OmegaConf
 
 from scene.camera import Intrinsics, project_points
 from scene.enclosure import exposed_samples, raycasting_scene
-from scene.mesh_loader import load_mesh_scene
+from scene.mesh_loader import MeshSceneSpec, load_mesh_scene
 
 RENDER_CFG = OmegaConf.load("conf/render/default.yaml")
 
@@ -35,7 +35,7 @@ def test_an_untextured_face_renders_with_sift_texture(tmp_path):
     from render import SceneRenderer
 
     path = write_obj(tmp_path / "cube.obj", [box((-5, -5, 0), (5, 5, 10))])
-    scene = load_mesh_scene(path, ground=False, cache_dir=tmp_path / "cache")
+    scene = load_mesh_scene(path, MeshSceneSpec(ground=False), cache_dir=tmp_path / "cache")
     assert scene.info["n_parts_materials"] == 1
     camera = Intrinsics(1024, 768, 60.0)
     view = np.array([17.0, 0.0, 5.0, 180.0, 0.0])  # 12 m in front of the +x face, facing it
@@ -115,12 +115,14 @@ def test_two_parts_at_different_base_heights_both_meet_the_ground(tmp_path):
 def test_bad_models_are_refused_naming_the_fix(tmp_path, meshes, options, message):
     path = write_obj(tmp_path / "bad.obj", meshes)
     with pytest.raises(ValueError, match=message):
-        load_mesh_scene(path, cache_dir=None, **options)
+        load_mesh_scene(path, MeshSceneSpec(**options), cache_dir=None)
 
 
 def test_flip_normals_fixes_an_inverted_model_and_nan_vertices_are_named(tmp_path):
     path = write_obj(tmp_path / "inv.obj", [box((0, 0, 0), (10, 10, 10)).invert()])
-    scene = load_mesh_scene(path, cache_dir=tmp_path / "cache", flip_normals=True, ground=False)
+    scene = load_mesh_scene(
+        path, MeshSceneSpec(flip_normals=True, ground=False), cache_dir=tmp_path / "cache"
+    )
     assert scene.ground_truth_mesh.volume > 0
     lines = (tmp_path / "inv.obj").read_text().splitlines()
     first_v = next(i for i, line in enumerate(lines) if line.startswith("v "))

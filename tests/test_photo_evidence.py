@@ -1,4 +1,4 @@
-"""Photo-consistency evidence (planner/photo_evidence.py) on a textured ground seen by six cameras."""
+"""Photo-consistency evidence (planner/ours/photo_evidence.py) on a textured ground seen by six cameras."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import pytest
 import trimesh
 from scipy.ndimage import map_coordinates
 
-from planner.evidence import EvidenceSettings, evidence_signals
-from planner.photo_evidence import PhotoSettings, PhotoViews, photo_consistency
+from planner.ours.evidence import EvidenceSettings, evidence_signals
+from planner.ours.photo_evidence import PhotoSettings, PhotoViews, photo_consistency
 from scene.camera import Intrinsics, cam_from_world, look_at
 from scene.plan import PlanningError
 
@@ -127,7 +127,7 @@ def test_an_exploration_entry_hands_its_views_to_the_planner(tmp_path):
 def test_a_proxy_carries_its_own_evidence():
     """``proxy_evidence`` reads the cloud the proxy carries: a sample 1 m from the cloud's edge is a
     gap (signal 1), one inside it is sure (0); no views with it, no photo signal; no cloud, None."""
-    from planner.evidence import proxy_evidence
+    from planner.ours.evidence import proxy_evidence
     from scene.proxy_mesh import PROXY_CLOUD_KEY
 
     settings = EvidenceSettings(1.0, 0.3, 0.15, 0.6, 0.25, 0.75, 25.0, 60.0, SETTINGS)

@@ -10,12 +10,12 @@ import pytest
 import trimesh
 import yaml
 
-from planner.candidates import CandidateSettings, FlightLimits, detail_group
-from planner.cmaes_refine import CmaSettings, refine_clusters, spatial_clusters
-from planner.culling import cull
 from planner.heuristics import HeuristicParams, global_score, view_quality
 from planner.objective import ObjectiveState
-from planner.ours import DEFAULTS, _add_viewpoints, plan
+from planner.ours.candidates import CandidateSettings, FlightLimits, detail_group
+from planner.ours.cmaes_refine import CmaSettings, refine_clusters, spatial_clusters
+from planner.ours.culling import cull
+from planner.ours.ours import DEFAULTS, _add_viewpoints, plan
 from planner.sampling import sample_surface
 from planner.visibility import VisibilityLimits, VisibilityModel
 from scene.camera import Intrinsics, forward_vectors
@@ -86,7 +86,7 @@ def test_defaults_are_the_config_file():
     for key, value in cfg["budget_partners"].items():
         if value == f"${{reconstruct.dense.{key}}}":
             cfg["budget_partners"][key] = dense[key]
-    assert cfg.pop("name") == "ours" and cfg.pop("_target_") == "planner.ours.plan"
+    assert cfg.pop("name") == "ours" and cfg.pop("_target_") == "planner.ours.ours.plan"
     assert cfg.pop("budget")["knob"] == "budget_limit.max_images"
     assert cfg.pop("version") == 1  # its plans' version (results/protocol.md), not a parameter
     assert cfg == DEFAULTS

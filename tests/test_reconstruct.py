@@ -23,27 +23,25 @@ import trimesh
 from omegaconf import OmegaConf
 
 from reconstruct.align import align_to_gnss, deregister_gnss_outliers, merge_model, pose_errors
-from reconstruct.dense import (
-    RectifiedPair,
-    consistent_depth,
-    disparity_search_range,
-    fuse,
-    fusion_budget_gb,
-    fusion_chunk_size,
-    matchable_window,
-    normals_from_depth,
-    pair_depth,
-    reference_views,
-    textured_pixels,
-)
+from reconstruct.cache_keys import flight_content_key
+from reconstruct.dense import fuse, fusion_budget_gb, fusion_chunk_size
 from reconstruct.errors import ReconstructionError
 from reconstruct.flight import Flight, read_flight, simulate_gnss
 from reconstruct.fusion_chunks import owning_chunk, plan_chunks, read_visibility
-from reconstruct.pipeline import build_proxy, flight_content_key, proxy_flight_config, reconstruct_flight
+from reconstruct.pipeline import build_proxy, proxy_flight_config, reconstruct_flight
 from reconstruct.proxy import degraded_ground_truth, oriented_cloud, poisson_proxy
-from reconstruct.rectify import rectify_pair
+from reconstruct.rectify import RectifiedPair, rectify_pair
 from reconstruct.sfm import map_reconstruction, pose_prior_pairs, sfm_options, write_pose_priors
 from reconstruct.sfm_settings import COLMAP_ABS_POSE, COLMAP_LOCAL_BA
+from reconstruct.stereo.depth_maps import reference_views
+from reconstruct.stereo.matching import (
+    consistent_depth,
+    disparity_search_range,
+    matchable_window,
+    normals_from_depth,
+    pair_depth,
+    textured_pixels,
+)
 from reconstruct.timing import stage_time
 from reconstruct.workspace import View, prepare_workspace, select_partners, write_maps
 from scene.base import Box, MeshPart, Scene
@@ -1140,7 +1138,7 @@ def test_proxy_dense_settings_override_only_the_exploratory_flight():
 
 
 def test_the_proxy_keeps_the_former_matcher_and_normal_tolerance_and_its_cache_key():
-    from reconstruct.pipeline import proxy_settings
+    from reconstruct.cache_keys import proxy_settings
 
     cfg = reconstruct_cfg()
     assert cfg.dense.fusion.max_normal_error == 30.0  # the scored flights (SGBM's depth-derived normals)

@@ -9,7 +9,7 @@ import trimesh
 from PIL import Image
 
 from scene.base import Box, MeshPart
-from scene.mesh_loader import load_mesh_scene
+from scene.mesh_loader import MeshSceneSpec, load_mesh_scene
 from scene.procedural.geometry import (
     Builder,
     Material,
@@ -333,7 +333,7 @@ def _png_bytes(tmp_path) -> bytes:
 
 def test_mesh_loader_textured_obj(tmp_path):
     path = _write_textured_obj(tmp_path / "ok", _png_bytes(tmp_path))
-    s = load_mesh_scene(path, scale=0.5, ground=False)
+    s = load_mesh_scene(path, MeshSceneSpec(scale=0.5, ground=False))
     (part,) = s.parts
     assert part.texture is not None and s.textures[part.texture].shape == (256, 256, 3)
     assert np.allclose(s.structure_bounds.extent, [1.0, 2.0, 3.0])
@@ -346,7 +346,7 @@ def test_mesh_loader_y_up_and_vertex_colours(tmp_path):
     cube = trimesh.creation.box((2.0, 4.0, 6.0))
     cube.visual.vertex_colors = np.random.default_rng(1).integers(0, 255, (8, 4), dtype=np.uint8)
     cube.export(tmp_path / "cube.ply")
-    s = load_mesh_scene(tmp_path / "cube.ply", up_axis="y", apron_m=2.0, ground_margin_m=10.0)
+    s = load_mesh_scene(tmp_path / "cube.ply", MeshSceneSpec(up_axis="y", apron_m=2.0, ground_margin_m=10.0))
     assert np.allclose(s.structure_bounds.extent, [2.0, 6.0, 4.0])  # y (4 m) is now up
     part = s.parts[0]
     assert part.vertex_colors is not None and part.vertex_colors.shape == (len(part.vertices), 3)
@@ -375,12 +375,14 @@ def test_mesh_loader_bad_input(tmp_path):
     with pytest.raises(FileNotFoundError, match="skin.png.*not found"):
         load_mesh_scene(_write_textured_obj(tmp_path / "missing", None))
     with pytest.raises(ValueError, match="up_axis"):
-        load_mesh_scene(_write_textured_obj(tmp_path / "ok", _png_bytes(tmp_path)), up_axis="x")
+        load_mesh_scene(
+            _write_textured_obj(tmp_path / "ok", _png_bytes(tmp_path)), MeshSceneSpec(up_axis="x")
+        )
 
 
 def test_mesh_loader_school_in_metres_with_detail():
     """The shared school (Collada in inches, Z-up) is about 33 x 17.5 x 14 m (its README)."""
-    plain = load_mesh_scene(SCHOOL, ground=False, add_detail=False)
+    plain = load_mesh_scene(SCHOOL, MeshSceneSpec(ground=False, add_detail=False))
     assert plain.info["unit_to_m"] == pytest.approx(0.0254)
     assert np.allclose(plain.structure_bounds.extent, [33.0, 17.5, 14.2], atol=0.3)
     detailed = load_scene(

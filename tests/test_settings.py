@@ -77,7 +77,7 @@ def test_the_refusal_comes_before_the_scene_loads(monkeypatch, tmp_path):
     def no_scene(*args, **kwargs):
         raise AssertionError("the scene was loaded before the settings were checked")
 
-    monkeypatch.setattr("scene.registry.load_scene", no_scene)
+    monkeypatch.setattr(cell, "load_scene", no_scene)
     record = cell.cell_record(composed())
     with pytest.raises(SettingsError, match=r"reconstruct\.dense\.num_partners must be >= 1, got 0"):
         cell.run_cell(composed("reconstruct.dense.num_partners=0"), tmp_path, record)
@@ -119,3 +119,45 @@ def test_typed_blocks_keep_the_yaml_values():
         0.8,
         4096,
     )
+
+
+def test_each_stage_is_handed_its_typed_part_not_the_run_config(monkeypatch, tmp_path):
+    """The run config is read once (``cell_settings``): no stage of ``run_cell`` gets a Hydra
+    mapping or a dict, each gets its own typed part of the settings."""
+    from types import SimpleNamespace
+
+    from omegaconf import DictConfig
+
+    from pipeline.settings import CellSettings
+    from reconstruct.settings import ReconstructSettings
+    from render.flight import RenderSettings
+    from scene.registry import SceneSettings
+
+    calls: dict[str, tuple] = {}
+
+    def stage(name, result):
+        def spy(*args, **kwargs):
+            calls[name] = (*args, *kwargs.values())
+            return result
+
+        return spy
+
+    scene = SimpleNamespace(fingerprint="f", ground_truth_mesh=None)
+    plan = SimpleNamespace(viewpoints=[], kinds=[])
+    monkeypatch.setattr(cell, "load_scene", stage("scene", scene))
+    monkeypatch.setattr(cell, "proxy_stage", stage("proxy", (object(), {})))
+    monkeypatch.setattr(cell, "planned", stage("plan", (plan, {})))
+    monkeypatch.setattr(cell, "render_flight", stage("render", SimpleNamespace(render_time_s=0.0)))
+    monkeypatch.setattr(cell, "reconstruct_flight", stage("reconstruct", {"dense_ply": "d.ply"}))
+    monkeypatch.setattr(cell, "evaluate_reconstruction", stage("evaluate", {}))
+    monkeypatch.setattr(cell, "oracle_stage", stage("oracle", {}))
+    cfg = composed("reconstruct.oracle_beside=true")
+    cell.run_cell(cfg, tmp_path, cell.cell_record(cfg))
+    assert set(calls) == {"scene", "proxy", "plan", "render", "reconstruct", "evaluate", "oracle"}
+    for name, args in calls.items():
+        assert not any(isinstance(a, DictConfig | dict) for a in args), name
+    assert isinstance(calls["scene"][0], SceneSettings)
+    assert isinstance(calls["plan"][1], CellSettings)
+    assert isinstance(calls["render"][4], RenderSettings)
+    assert isinstance(calls["reconstruct"][2], ReconstructSettings)
+    assert isinstance(calls["oracle"][2], ReconstructSettings)

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from planner.ours_budget import PartnerTerm, _pick_victims
-from planner.stereo_partners import PartnerRule, added_shortfall, forecast, partner_matrix
+from planner.ours.ours_budget import PartnerTerm, _pick_victims
+from planner.ours.stereo_partners import PartnerRule, added_shortfall, forecast, partner_matrix
 
 RULE = PartnerRule(min_shared_samples=10, num_partners=4)
 

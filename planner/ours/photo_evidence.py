@@ -1,6 +1,6 @@
 """Photo-consistency of the proxy in the exploratory flight's own images (``ours_plus`` evidence).
 
-The cloud signals of ``planner.evidence`` read the exploration's fused cloud, so a surface that the
+The cloud signals of ``planner.ours.evidence`` read the exploration's fused cloud, so a surface that the
 cloud itself places a few centimetres off looks sure to them. The images see it: a small patch of
 the proxy's tangent plane around a sample, projected into the views that see it, shows the same
 texture in every view only where the proxy lies on the true surface; off it, each view looks at a
@@ -28,6 +28,8 @@ import numpy as np
 import trimesh
 from scipy.ndimage import map_coordinates
 
+from reconstruct.workspace import read_views
+from scene.enclosure import raycasting_scene
 from scene.plan import PlanningError
 
 
@@ -88,8 +90,6 @@ class PhotoViews:
     @classmethod
     def from_reconstruction(cls, recon_dir: Path, image_dir: Path) -> PhotoViews:
         """The registered views of ``recon_dir/sparse`` (COLMAP, world frame) and their images."""
-        from reconstruct.workspace import read_views
-
         views = sorted(read_views(Path(recon_dir)).values(), key=lambda v: v.name)
         if not views:
             raise PlanningError(f"{recon_dir}/sparse: no registered view for photo-consistency")
@@ -141,9 +141,8 @@ def photo_consistency(
         ``ncc`` (P,) mean NCC against the most frontal view, ``n_views`` (P,) views that see the
         sample (before the ``s.n_views`` cut), ``signal`` (P,) in [0, 1] (0 where ``ncc`` is NaN).
     """
+    # heavy (open3d): imported on use
     import open3d as o3d
-
-    from scene.enclosure import raycasting_scene
 
     points = np.asarray(points, float)
     normals = np.asarray(normals, float)

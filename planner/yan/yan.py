@@ -38,6 +38,7 @@ from collections.abc import Mapping
 import numpy as np
 import scipy.sparse as sparse
 import trimesh
+from scipy.cluster.vq import kmeans2
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
@@ -394,8 +395,6 @@ def order_in_clusters(
     clusters of about ``cluster_size``, the cluster centres ordered by the shared TSP path and
     each cluster's views ordered by it from the end of the previous cluster.
     """
-    from scipy.cluster.vq import kmeans2
-
     n = len(positions)
     if n <= cluster_size:
         return order_viewpoints(positions, start=start, runs=runs)
@@ -411,6 +410,43 @@ def order_in_clusters(
         order.append(local)
         here = positions[local[-1]]
     return np.concatenate(order)
+
+
+def _local_views(model, positions, points, quality, p: Mapping, distances, pitch_lim):
+    """Yan's local views: for each low-quality sample (worst first) the best free candidate position
+    aimed at it. Returns the views (n, 5), which candidates they took, the samples' observation
+    counts so far and the local views' own counts (both (P,)), and the low-quality samples."""
+    d_min, d_opt, d_max = distances
+    n_cand = len(positions)
+    taken = np.zeros(n_cand, bool)
+    counts = np.zeros(len(points), np.int64)
+    local_vps: list[np.ndarray] = []
+    low = np.flatnonzero(quality < float(p["quality_threshold"]))
+    low = low[np.argsort(quality[low], kind="stable")]
+    if len(low):
+        aimed = position_scores(
+            model, positions, low, d_min, d_opt, d_max, float(p["theta_t_deg"]), float(p["max_incidence_deg"])
+        ).tocsc()
+        for k in tqdm(range(len(low)), desc="yan local", disable=not p["progress"]):
+            col = aimed.getcol(k)
+            cand, val = col.indices, col.data
+            free = ~taken[cand]
+            if not free.any():
+                continue
+            best = cand[free][np.argmax(val[free])]
+            taken[best] = True
+            local_vps.append(aim_at(positions[best][None], points[low[k]][None], *pitch_lim)[0])
+    local_vps = np.array(local_vps).reshape(-1, 5)
+    counts_local = np.zeros(len(points), np.int64)
+    if len(local_vps):
+        local_scores = view_scores(
+            model, local_vps, d_min, d_opt, float(p["theta_t_deg"]), int(p["batch_size"])
+        )
+        counts_local = (
+            np.asarray((local_scores >= float(p["min_score"])).sum(axis=0)).ravel().astype(np.int64)
+        )
+        counts += counts_local
+    return local_vps, taken, counts, counts_local, low
 
 
 def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: int) -> Plan:
@@ -453,34 +489,9 @@ def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: 
     timings["candidates"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    taken = np.zeros(n_cand, bool)
-    counts = np.zeros(len(points), np.int64)
-    local_vps: list[np.ndarray] = []
-    low = np.flatnonzero(quality < float(p["quality_threshold"]))
-    low = low[np.argsort(quality[low], kind="stable")]
-    if len(low):
-        aimed = position_scores(
-            model, positions, low, d_min, d_opt, d_max, float(p["theta_t_deg"]), float(p["max_incidence_deg"])
-        ).tocsc()
-        for k in tqdm(range(len(low)), desc="yan local", disable=not p["progress"]):
-            col = aimed.getcol(k)
-            cand, val = col.indices, col.data
-            free = ~taken[cand]
-            if not free.any():
-                continue
-            best = cand[free][np.argmax(val[free])]
-            taken[best] = True
-            local_vps.append(aim_at(positions[best][None], points[low[k]][None], *pitch_lim)[0])
-    local_vps = np.array(local_vps).reshape(-1, 5)
-    counts_local = np.zeros(len(points), np.int64)
-    if len(local_vps):
-        local_scores = view_scores(
-            model, local_vps, d_min, d_opt, float(p["theta_t_deg"]), int(p["batch_size"])
-        )
-        counts_local = (
-            np.asarray((local_scores >= float(p["min_score"])).sum(axis=0)).ravel().astype(np.int64)
-        )
-        counts += counts_local
+    local_vps, taken, counts, counts_local, low = _local_views(
+        model, positions, points, quality, p, (d_min, d_opt, d_max), pitch_lim
+    )
     timings["local"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()

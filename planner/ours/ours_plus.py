@@ -1,10 +1,10 @@
 """``ours_plus``: the paper's planner with the two extensions its conclusion proposes.
 
-1. Evidence from the exploratory flight (``planner.evidence``): each proxy sample weighs
+1. Evidence from the exploratory flight (``planner.ours.evidence``): each proxy sample weighs
    ``1 + evidence.weight * uncertainty`` in the objective, and the most unsure samples are served
    first when views are added and repaired. The planner still sees only the exploration's files
    (its fused cloud travels with the proxy), never the ground truth.
-2. Flight time in the objective (``planner.flight_time_term``): CMA-ES and culling maximise R minus
+2. Flight time in the objective (``planner.ours.flight_time_term``): CMA-ES and culling maximise R minus
    ``flight_time.weight_per_pct`` per 1 % of the plan's first flight (its views after the first
    addition), timed by the missions' model for ``drone``.
 
@@ -22,10 +22,10 @@ from threadpoolctl import threadpool_limits
 
 from drone.model import DroneSettings
 from planner.base import plain_params
-from planner.evidence import EvidenceSettings, proxy_evidence, sample_weights
-from planner.flight_time_term import FlightTimeTerm
-from planner.ours import PlanExtensions, plan_with, resolve_params
-from planner.ours_settings import OursSettings
+from planner.ours.evidence import EvidenceSettings, proxy_evidence, sample_weights
+from planner.ours.flight_time_term import FlightTimeTerm
+from planner.ours.ours import PlanExtensions, plan_with, resolve_params
+from planner.ours.ours_settings import OursSettings
 from scene.camera import Intrinsics
 from scene.plan import Plan, PlanningError
 from scene.proxy_mesh import PROXY_CLOUD_KEY
@@ -86,7 +86,7 @@ def check_params(params: Mapping, intrinsics: Intrinsics) -> None:
 
 
 def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: int) -> Plan:
-    """Plan like ``planner.ours.plan`` with the exploration's evidence and a flight-time term."""
+    """Plan like ``planner.ours.ours.plan`` with the exploration's evidence and a flight-time term."""
     evidence, weight_per_pct, drone, cfg = _parsed(params)
 
     def time_term(takeoff: np.ndarray) -> FlightTimeTerm:

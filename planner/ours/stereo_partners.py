@@ -6,7 +6,7 @@ at those points lies in [``min_triangulation_angle_deg``, ``max_triangulation_an
 baseline makes at least ``min_baseline_axis_angle_deg`` with both optical axes. A view with fewer
 partners gets fewer depth maps, and fusion (three agreeing maps) keeps less of what it sees. The same
 test on the planner's samples (shared visible samples in place of shared sparse points) forecasts
-those partners before the flight; the budget prune (``planner.ours_budget``) uses it so that the
+those partners before the flight; the budget prune (``planner.ours.ours_budget``) uses it so that the
 views it keeps keep their partners. Measured on the tomb's 100-image plan (archive/pre_p1/planner_ours.md):
 forecast against the dense stage's own choice, per view, agreed within one partner for 92 of 100 views.
 """

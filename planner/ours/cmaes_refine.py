@@ -21,8 +21,8 @@ import cma
 import numpy as np
 from tqdm import tqdm
 
-from planner.candidates import FlightLimits
 from planner.objective import ObjectiveState
+from planner.ours.candidates import FlightLimits
 from planner.visibility import VisibilityModel
 
 
@@ -129,7 +129,7 @@ def refine_clusters(
         settings: CMA-ES settings.
         seed, pass_index: make the per-cluster CMA-ES seeds.
         point_rows: whether the moved rows count for the point scores (see ``ObjectiveState``).
-        time_term: a ``planner.flight_time_term.FlightTimeTerm`` (``ours_plus``): maximise R minus
+        time_term: a ``planner.ours.flight_time_term.FlightTimeTerm`` (``ours_plus``): maximise R minus
             the flight-time cost, the visiting order fixed for the pass; None: R alone (the paper).
 
     Returns:

@@ -37,7 +37,7 @@ def cull(
         cullable: (V,) bool, rows that may be removed.
         overlap_threshold: pairs with r_ij >= this are redundancy candidates.
         tolerance: largest accepted drop of R (objective units) over the pass.
-        time_term: a ``planner.flight_time_term.FlightTimeTerm``, with ``viewpoints`` (V, 5) the rows'
+        time_term: a ``planner.ours.flight_time_term.FlightTimeTerm``, with ``viewpoints`` (V, 5) the rows'
             viewpoints; None: R alone (the paper).
 
     Returns:

@@ -8,7 +8,7 @@ battery budget (a view's stop and the detour to it, in the flight-time order of
 ``planner.trajectory.order_by_flight_time``). The objective is the one the plan reports as its
 final R (Eq. 10 with the detail heuristics, every view seen within the coverage range), so the
 views kept are the ones the objective values most for what they cost. A removal also pays for the
-stereo partners it takes from the views that stay (``PartnerTerm``, ``planner.stereo_partners``):
+stereo partners it takes from the views that stay (``PartnerTerm``, ``planner.ours.stereo_partners``):
 the objective alone left a 100-image tomb plan with 30 views of two partners or fewer, and the dense stage
 made less of their walls (archive/pre_p1/planner_ours.md). A budget the plan already
 fits leaves it as it is; a budget below what the model-coverage views alone need is refused, naming
@@ -23,8 +23,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from drone.model import flight_summary
 from planner.objective import ObjectiveState
-from planner.stereo_partners import added_shortfall, forecast
+from planner.ours.stereo_partners import added_shortfall, forecast
+from planner.trajectory import flight_time_costs, order_by_flight_time
 from scene.config import setting, typed_settings
 from scene.plan import PlanningError
 
@@ -63,9 +65,6 @@ class BudgetLimit:
 
 def flight_of(viewpoints: np.ndarray, drone, takeoff: np.ndarray, tsp_runs: int) -> tuple[np.ndarray, dict]:
     """The flight-time order of ``viewpoints`` and the drone model's summary of it."""
-    from drone.model import flight_summary
-    from planner.trajectory import order_by_flight_time
-
     order = order_by_flight_time(viewpoints, takeoff, drone, runs=tsp_runs)
     return order, flight_summary(viewpoints[order], drone)
 
@@ -83,8 +82,6 @@ def _over(limit: BudgetLimit, n_views: int, flight: dict | None) -> bool:
 def seconds_saved(viewpoints: np.ndarray, order: np.ndarray, takeoff: np.ndarray, drone) -> np.ndarray:
     """(V,) seconds each view's removal saves in the flight ``order``: its photo, its turn and the
     detour to it (the legs to and from it, minus the direct leg that replaces them)."""
-    from planner.trajectory import flight_time_costs
-
     cost = flight_time_costs(viewpoints, takeoff, drone)
     path = np.concatenate([[0], np.asarray(order) + 1, [0]])
     saved = np.zeros(len(viewpoints))
@@ -111,7 +108,7 @@ def fit_budget(
         limit: the budget.
         drone: the drone, for a time or battery budget (``drone.model.DroneSettings``).
         takeoff: (3,) take-off point (m).
-        partners: the stereo partners the views will find (``planner.stereo_partners``) and what a
+        partners: the stereo partners the views will find (``planner.ours.stereo_partners``) and what a
             lost one costs; None: the views go by the objective alone.
 
     Returns:

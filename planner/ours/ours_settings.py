@@ -1,7 +1,7 @@
 """The settings of the paper's planner, checked and turned into metres once, before any planning.
 
 ``OursSettings.build(cfg, intrinsics)`` takes the resolved ``conf/planner/ours.yaml`` block
-(``planner.ours.resolve_params``) and the survey camera and returns everything ``planner.ours``
+(``planner.ours.ours.resolve_params``) and the survey camera and returns everything ``planner.ours.ours``
 needs in physical units, or raises ``PlanningError`` naming the first bad setting. The pipeline
 builds it before the scene loads (``pipeline.settings``), so a bad setting costs no exploration.
 """
@@ -14,18 +14,18 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from planner.candidates import CandidateSettings, FlightLimits
-from planner.cmaes_refine import CmaSettings
+from drone.model import DroneError, DroneSettings
 from planner.heuristics import HeuristicParams
-from planner.ours_budget import BudgetLimit
-from planner.stereo_partners import PartnerRule
+from planner.ours.candidates import CandidateSettings, FlightLimits
+from planner.ours.cmaes_refine import CmaSettings
+from planner.ours.ours_budget import BudgetLimit
+from planner.ours.stereo_partners import PartnerRule
 from planner.visibility import VisibilityLimits
 from scene.camera import Intrinsics
 from scene.plan import PlanningError
 
 
 def _drone(node):
-    from drone.model import DroneError, DroneSettings
 
     try:
         return DroneSettings.from_config(node) if node is not None else DroneSettings.default()
@@ -94,7 +94,7 @@ def detail_params(h: Mapping, d_t: float) -> HeuristicParams:
 
 @dataclass(frozen=True)
 class OursSettings:
-    """``planner.ours``' settings in physical units (metres, degrees).
+    """``planner.ours.ours``' settings in physical units (metres, degrees).
 
     Attributes:
         cfg: the resolved settings as given (recorded in ``Plan.info["parameters"]``).
@@ -106,9 +106,9 @@ class OursSettings:
         cma_det, cma_cov: the CMA-ES settings of the two passes.
         n_points: surface samples.
         takeoff: [x, y, z] (m), or None for the proxy's lowest corner on the ground.
-        budget: the crew's budget (``planner.ours_budget``); ``drone`` the drone it is flown on.
+        budget: the crew's budget (``planner.ours.ours_budget``); ``drone`` the drone it is flown on.
         partners: the dense stage's stereo-partner test the budget prune keeps views for
-            (``planner.stereo_partners``).
+            (``planner.ours.stereo_partners``).
     """
 
     cfg: dict

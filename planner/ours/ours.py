@@ -23,26 +23,27 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+from omegaconf import OmegaConf
 from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from planner.base import plain_params
 from planner.budget import CONFIG_KEYS
-from planner.candidates import (
+from planner.heuristics import global_score
+from planner.objective import ObjectiveState
+from planner.ours.candidates import (
     CandidateSettings,
     detail_group,
     select_spread,
     side_pool,
     valid_candidates,
 )
-from planner.cmaes_refine import refine_clusters
-from planner.culling import cull
-from planner.heuristics import global_score
-from planner.objective import ObjectiveState
-from planner.ours_budget import PartnerTerm, fit_budget
-from planner.ours_settings import OursSettings
+from planner.ours.cmaes_refine import refine_clusters
+from planner.ours.culling import cull
+from planner.ours.ours_budget import PartnerTerm, fit_budget
+from planner.ours.ours_settings import OursSettings
+from planner.ours.stereo_partners import partner_matrix
 from planner.sampling import sample_surface, validate_proxy
-from planner.stereo_partners import partner_matrix
 from planner.trajectory import flight_length, order_viewpoints
 from planner.visibility import VisibilityModel
 from scene.camera import Intrinsics
@@ -54,9 +55,7 @@ def _yaml_defaults() -> dict:
     shared target GSD taken from ``conf/config.yaml``, the drone from ``conf/drone`` and the dense
     stage's partner test from ``conf/reconstruct``; the config-only keys
     (``planner.budget.CONFIG_KEYS``) dropped."""
-    from omegaconf import OmegaConf
-
-    conf = Path(__file__).resolve().parents[1] / "conf"
+    conf = Path(__file__).resolve().parents[2] / "conf"
     survey = OmegaConf.load(conf / "config.yaml").survey
     drone = OmegaConf.load(conf / "drone" / "default.yaml")
     reconstruct = OmegaConf.load(conf / "reconstruct" / "default.yaml")
@@ -229,11 +228,11 @@ def _coverage_group(point_index, state, model, limits, settings: CandidateSettin
 
 @dataclass(frozen=True)
 class PlanExtensions:
-    """What ``ours_plus`` adds to the paper's planner (``planner/ours_plus.py``); None: the paper's.
+    """What ``ours_plus`` adds to the paper's planner (``planner/ours/ours_plus.py``); None: the paper's.
 
     Attributes:
         weigh_samples: (points, normals) (P, 3) each -> (weights (P,), record for ``Plan.info``).
-        time_term: take-off point (3,) -> a ``planner.flight_time_term.FlightTimeTerm`` without its
+        time_term: take-off point (3,) -> a ``planner.ours.flight_time_term.FlightTimeTerm`` without its
             reference flight, which the views of the first addition set.
         planner: the name the plan carries.
     """
@@ -265,16 +264,69 @@ def plan(proxy: trimesh.Trimesh, intrinsics: Intrinsics, params: Mapping, seed: 
         return plan_with(proxy, intrinsics, resolve_params(params), seed, PlanExtensions())
 
 
-def plan_with(
-    proxy: trimesh.Trimesh, intrinsics: Intrinsics, cfg: dict, seed: int, ext: PlanExtensions
-) -> Plan:
-    """``plan`` with resolved parameters ``cfg`` and the ``ext`` additions (call under one BLAS thread)."""
-    t_start = time.perf_counter()
+@dataclass
+class _Run:
+    """What the passes of one ``plan_with`` share: its settings, models, objective and views so far."""
+
+    cfg: dict
+    settings: OursSettings
+    seed: int
+    takeoff: np.ndarray
+    time_term: object
+    points: np.ndarray
+    weights: np.ndarray | None
+    evidence: dict | None
+    det_model: VisibilityModel
+    cov_model: VisibilityModel
+    rec: _Recorder
+    state: ObjectiveState
+    viewpoints: list
+    kinds: list
+    excluded: np.ndarray
+
+    def cull_unless_off(self, objective: ObjectiveState, cullable: np.ndarray, desc: str):
+        """Cull the ``cullable`` views (nothing where culling is off: the ablation without it)."""
+        cul = self.cfg["culling"]
+        if not bool(cul["enabled"]):  # the ablation without culling
+            return np.ones(len(cullable), bool), {"removed_empty": 0, "removed_redundant": 0}
+        return cull(
+            objective,
+            cullable,
+            float(cul["overlap_threshold"]),
+            float(cul["tolerance"]) * self.settings.n_points,
+            desc=desc,
+            time_term=self.time_term,
+            viewpoints=np.asarray(self.viewpoints),
+        )
+
+    def keep(self, kept: np.ndarray) -> None:
+        self.viewpoints = [v for v, k in zip(self.viewpoints, kept, strict=True) if k]
+        self.kinds = [s for s, k in zip(self.kinds, kept, strict=True) if k]
+
+    def add_detail(self, k_count: int, excluded_points: np.ndarray, repair_groups: int, desc: str) -> dict:
+        settings = self.settings
+        return _add_viewpoints(
+            self.state,
+            self.viewpoints,
+            self.kinds,
+            "detail",
+            self.det_model,
+            lambda i: detail_group(i, self.det_model, settings.limits, settings.det_candidates),
+            k_count,
+            excluded_points,
+            float(self.cfg["addition"]["repair_threshold"]),
+            repair_groups,
+            True,
+            desc,
+        )
+
+
+def _start(proxy: trimesh.Trimesh, intrinsics: Intrinsics, cfg: dict, seed: int, ext: PlanExtensions) -> _Run:
+    """Settings, take-off, the proxy's samples (weighed by ``ext``), both visibility models and the
+    detail objective, empty."""
     settings = OursSettings.build(cfg, intrinsics)
     validate_proxy(proxy)
-    cv = cfg["coverage"]
-    d_t, d_c, limits, n_points = settings.d_t, settings.d_c, settings.limits, settings.n_points
-    det_params, cov_params = settings.det_params, settings.cov_params
+    n_points = settings.n_points
     vis = cfg["visibility"]
     takeoff = settings.takeoff
     if takeoff is None:
@@ -291,198 +343,212 @@ def plan_with(
     )
     cov_model = det_model.with_limits(settings.cov_limits)
     rec = _Recorder([det_model, cov_model])
-    state = ObjectiveState(det_params, n_points, mode="detail", points=points, point_weights=weights)
+    state = ObjectiveState(settings.det_params, n_points, mode="detail", points=points, point_weights=weights)
     rec.record("sample", None, state, [], sample_time_s=time.perf_counter() - t0)
+    return _Run(
+        cfg,
+        settings,
+        seed,
+        takeoff,
+        time_term,
+        points,
+        weights,
+        evidence,
+        det_model,
+        cov_model,
+        rec,
+        state,
+        [],
+        [],
+        np.zeros(n_points, bool),
+    )
 
-    det_settings, cov_settings = settings.det_candidates, settings.cov_candidates
-    cma_det, cma_cov = settings.cma_det, settings.cma_cov
-    cul = cfg["culling"]
-    cull_tol = float(cul["tolerance"]) * n_points
 
-    def cull_unless_off(objective: ObjectiveState, cullable: np.ndarray, vps: list, desc: str):
-        if not bool(cul["enabled"]):  # the ablation without culling
-            return np.ones(len(cullable), bool), {"removed_empty": 0, "removed_redundant": 0}
-        return cull(
-            objective,
-            cullable,
-            float(cul["overlap_threshold"]),
-            cull_tol,
-            desc=desc,
-            time_term=time_term,
-            viewpoints=np.asarray(vps),
-        )
-
-    # ------------------------------------------------------------------ detail viewpoints
-    viewpoints: list[np.ndarray] = []
-    kinds: list[str] = []
-    excluded = np.zeros(n_points, bool)
-    add = cfg["addition"]
-
-    def add_detail(k_count: int, excluded_points: np.ndarray, repair_groups: int, desc: str) -> dict:
-        return _add_viewpoints(
-            state,
-            viewpoints,
-            kinds,
-            "detail",
-            det_model,
-            lambda i: detail_group(i, det_model, limits, det_settings),
-            k_count,
-            excluded_points,
-            float(add["repair_threshold"]),
-            repair_groups,
-            True,
-            desc,
-        )
-
+def _detail_pass(run: _Run) -> dict:
+    """``detail_rounds`` of addition, CMA-ES and culling; Eq. 10 over the detail views after it."""
+    cfg, settings, state, rec = run.cfg, run.settings, run.state, run.rec
     for r in range(int(cfg["detail_rounds"])):
-        stats = add_detail(
-            det_params.k_count, excluded, int(add["repair_max_groups"]), f"detail round {r + 1}"
+        stats = run.add_detail(
+            settings.det_params.k_count,
+            run.excluded,
+            int(cfg["addition"]["repair_max_groups"]),
+            f"detail round {r + 1}",
         )
-        if time_term is not None and time_term.reference_s is None and viewpoints:
-            time_term = time_term.referenced(np.asarray(viewpoints))
-        if not viewpoints:
+        if run.time_term is not None and run.time_term.reference_s is None and run.viewpoints:
+            run.time_term = run.time_term.referenced(np.asarray(run.viewpoints))
+        if not run.viewpoints:
             raise PlanningError(
                 "no valid viewpoint anywhere: every candidate breaks the altitude, clearance or gimbal "
-                f"limits or cannot see its point (limits={cfg['limits']}, d_t={d_t:.2f} m)"
+                f"limits or cannot see its point (limits={cfg['limits']}, d_t={settings.d_t:.2f} m)"
             )
-        rec.record("detail_addition", r, state, kinds, **stats)
-        vps = np.asarray(viewpoints)
+        rec.record("detail_addition", r, state, run.kinds, **stats)
+        vps = np.asarray(run.viewpoints)
         stats = refine_clusters(
             state,
             vps,
             np.arange(len(vps)),
-            det_model,
-            limits,
-            cma_det,
-            seed,
+            run.det_model,
+            settings.limits,
+            settings.cma_det,
+            run.seed,
             r,
             desc=f"detail round {r + 1}: CMA-ES",
-            time_term=time_term,
+            time_term=run.time_term,
         )
-        viewpoints = list(vps)
-        rec.record("detail_cmaes", r, state, kinds, **_drop_time(stats))
-        kept, stats = cull_unless_off(
-            state, np.ones(len(viewpoints), bool), viewpoints, f"detail round {r + 1}: cull"
+        run.viewpoints = list(vps)
+        rec.record("detail_cmaes", r, state, run.kinds, **_drop_time(stats))
+        kept, stats = run.cull_unless_off(
+            state, np.ones(len(run.viewpoints), bool), f"detail round {r + 1}: cull"
         )
-        viewpoints = [v for v, k in zip(viewpoints, kept, strict=True) if k]
-        kinds = [s for s, k in zip(kinds, kept, strict=True) if k]
-        rec.record("detail_culling", r, state, kinds, **_drop_time(stats))
-    if not viewpoints:
+        run.keep(kept)
+        rec.record("detail_culling", r, state, run.kinds, **_drop_time(stats))
+    if not run.viewpoints:
         raise PlanningError("culling removed every viewpoint: none sees a sampled point")
+    return state.parts()  # Eq. 10 over the detail views, detail range
 
-    detail_parts = state.parts()  # Eq. 10 over the detail views, detail range
 
-    # ------------------------------------------------------------------ model-coverage viewpoints
-    cstate = ObjectiveState(cov_params, n_points, mode="coverage", points=points, point_weights=weights)
-    cstate.reset(cov_model.observe(np.asarray(viewpoints)), point_rows=np.zeros(len(viewpoints), bool))
-    rec.record("coverage_start", None, cstate, kinds)
+def _coverage_pass(run: _Run) -> tuple[ObjectiveState, np.ndarray]:
+    """``coverage_rounds`` of model-coverage views (the detail views fixed); their objective and
+    the samples excluded."""
+    cfg, settings, rec = run.cfg, run.settings, run.rec
+    cv, cov_model, n_points = cfg["coverage"], run.cov_model, settings.n_points
+    cstate = ObjectiveState(
+        settings.cov_params, n_points, mode="coverage", points=run.points, point_weights=run.weights
+    )
+    cstate.reset(
+        cov_model.observe(np.asarray(run.viewpoints)), point_rows=np.zeros(len(run.viewpoints), bool)
+    )
+    rec.record("coverage_start", None, cstate, run.kinds)
     cov_excluded = np.zeros(n_points, bool)
     for r in range(int(cfg["coverage_rounds"])):
         stats = _add_viewpoints(
             cstate,
-            viewpoints,
-            kinds,
+            run.viewpoints,
+            run.kinds,
             "coverage",
             cov_model,
-            lambda i: _coverage_group(i, cstate, cov_model, limits, cov_settings),
-            cov_params.k_count,
+            lambda i: _coverage_group(i, cstate, cov_model, settings.limits, settings.cov_candidates),
+            settings.cov_params.k_count,
             cov_excluded,
             float(cv["repair_threshold"]),
             int(cv["repair_max_groups"]),
             True,
             f"coverage round {r + 1}",
         )
-        rec.record("coverage_addition", r, cstate, kinds, **stats)
-        vps = np.asarray(viewpoints)
-        cov_rows = np.flatnonzero(np.asarray(kinds) == "coverage")
+        rec.record("coverage_addition", r, cstate, run.kinds, **stats)
+        vps = np.asarray(run.viewpoints)
+        cov_rows = np.flatnonzero(np.asarray(run.kinds) == "coverage")
         stats = refine_clusters(
             cstate,
             vps,
             cov_rows,
             cov_model,
-            limits,
-            cma_cov,
-            seed,
+            settings.limits,
+            settings.cma_cov,
+            run.seed,
             100 + r,
             point_rows=True,
             desc=f"coverage round {r + 1}: CMA-ES",
-            time_term=time_term,
+            time_term=run.time_term,
         )
-        viewpoints = list(vps)
-        rec.record("coverage_cmaes", r, cstate, kinds, **_drop_time(stats))
-        kept, stats = cull_unless_off(
-            cstate, np.asarray(kinds) == "coverage", viewpoints, f"coverage round {r + 1}: cull"
+        run.viewpoints = list(vps)
+        rec.record("coverage_cmaes", r, cstate, run.kinds, **_drop_time(stats))
+        kept, stats = run.cull_unless_off(
+            cstate, np.asarray(run.kinds) == "coverage", f"coverage round {r + 1}: cull"
         )
-        viewpoints = [v for v, k in zip(viewpoints, kept, strict=True) if k]
-        kinds = [s for s, k in zip(kinds, kept, strict=True) if k]
-        rec.record("coverage_culling", r, cstate, kinds, **_drop_time(stats))
+        run.keep(kept)
+        rec.record("coverage_culling", r, cstate, run.kinds, **_drop_time(stats))
+    return cstate, cov_excluded
 
-    # ------------------------------------------------------------------ the crew's budget
+
+def _budget_pass(run: _Run) -> tuple[np.ndarray, list[str], dict | None]:
+    """The crew's budget: fill up to its image cap (one more detail view per sample at a time),
+    then prune to its limits keeping stereo partners; the views, their kinds and the record."""
+    settings, det_params, n_points = run.settings, run.settings.det_params, run.settings.n_points
     cap = settings.budget.max_images
     k_fill = det_params.k_count
-    n_paper = len(viewpoints)  # the paper's plan, before a fill
-    while cap is not None and len(viewpoints) < cap and k_fill < det_params.k_count + MAX_FILL_VIEWS:
+    n_paper = len(run.viewpoints)  # the paper's plan, before a fill
+    while cap is not None and len(run.viewpoints) < cap and k_fill < det_params.k_count + MAX_FILL_VIEWS:
         # A budget above what the objective asks for: one more detail view per sampled point.
         k_fill += 1
-        stats = add_detail(k_fill, np.zeros(n_points, bool), 0, f"budget fill (k {k_fill})")
-        rec.record("budget_fill", k_fill, state, kinds, **stats)
+        stats = run.add_detail(k_fill, np.zeros(n_points, bool), 0, f"budget fill (k {k_fill})")
+        run.rec.record("budget_fill", k_fill, run.state, run.kinds, **stats)
         if not stats["added"]:
             break
-    vps = np.asarray(viewpoints)
-    budget = None
-    if settings.budget.active:
-        t0 = time.perf_counter()
-        final_state = ObjectiveState(
-            det_params, n_points, mode="detail", points=points, point_weights=weights
-        )
-        unconstrained_obs = cov_model.observe(vps)
-        final_state.reset(unconstrained_obs)
-        rule = settings.partners
-        eligible = partner_matrix(unconstrained_obs.visible, unconstrained_obs.direction, vps, rule)
-        partners = PartnerTerm(eligible, rule.num_partners, rule.weight)
-        kept, budget = fit_budget(
-            final_state, vps, kinds, settings.budget, settings.drone, takeoff, int(cfg["tsp_runs"]), partners
-        )
-        # "unconstrained": what the objective asked for (after a fill: the filled plan, before the prune).
-        budget |= {
-            "paper_plan_images": n_paper,
-            "unconstrained_viewpoints": vps.tolist(),
-            "time_s": time.perf_counter() - t0,
-        }
-        vps, kinds = vps[kept], [k for k, keep in zip(kinds, kept, strict=True) if keep]
+    vps, kinds = np.asarray(run.viewpoints), run.kinds
+    if not settings.budget.active:
+        return vps, kinds, None
+    t0 = time.perf_counter()
+    final_state = ObjectiveState(
+        det_params, n_points, mode="detail", points=run.points, point_weights=run.weights
+    )
+    unconstrained_obs = run.cov_model.observe(vps)
+    final_state.reset(unconstrained_obs)
+    rule = settings.partners
+    eligible = partner_matrix(unconstrained_obs.visible, unconstrained_obs.direction, vps, rule)
+    partners = PartnerTerm(eligible, rule.num_partners, rule.weight)
+    kept, budget = fit_budget(
+        final_state,
+        vps,
+        kinds,
+        settings.budget,
+        settings.drone,
+        run.takeoff,
+        int(run.cfg["tsp_runs"]),
+        partners,
+    )
+    # "unconstrained": what the objective asked for (after a fill: the filled plan, before the prune).
+    budget |= {
+        "paper_plan_images": n_paper,
+        "unconstrained_viewpoints": vps.tolist(),
+        "time_s": time.perf_counter() - t0,
+    }
+    return vps[kept], [k for k, keep in zip(kinds, kept, strict=True) if keep], budget
+
+
+def plan_with(
+    proxy: trimesh.Trimesh, intrinsics: Intrinsics, cfg: dict, seed: int, ext: PlanExtensions
+) -> Plan:
+    """``plan`` with resolved parameters ``cfg`` and the ``ext`` additions (call under one BLAS thread)."""
+    t_start = time.perf_counter()
+    run = _start(proxy, intrinsics, cfg, seed, ext)
+    detail_parts = _detail_pass(run)
+    cstate, cov_excluded = _coverage_pass(run)
+    vps, kinds, budget = _budget_pass(run)
+    settings, takeoff, time_term = run.settings, run.takeoff, run.time_term
 
     # ------------------------------------------------------------------ final score and order
     # The final R: Eq. 10 with the detail heuristics over every view, seen within the coverage
     # range (the detail range would make every coverage view see nothing). Far coverage views widen
     # the angular spread of Eq. 4, so this is usually below ``final_detail_pass``.
-    final_obs = cov_model.observe(vps)
+    final_obs = run.cov_model.observe(vps)
     final = global_score(
         final_obs.visible,
         final_obs.distance,
         final_obs.direction,
         final_obs.cos_incidence,
-        det_params,
-        points,
+        settings.det_params,
+        run.points,
     )
     t0 = time.perf_counter()
     order = order_viewpoints(vps[:, :3], takeoff, runs=int(cfg["tsp_runs"]))
     vps, kinds = vps[order], [kinds[i] for i in order]
     tsp_time = time.perf_counter() - t0
-    rays = det_model.rays_cast + cov_model.rays_cast
-    evaluations = state.evaluations + cstate.evaluations
+    rays = run.det_model.rays_cast + run.cov_model.rays_cast
+    evaluations = run.state.evaluations + cstate.evaluations
     total = time.perf_counter() - t_start
     info = {
         "parameters": cfg,
         "seed": int(seed),
-        "target_distance_m": d_t,
-        "coverage_distance_m": d_c,
-        "n_points": n_points,
-        "excluded_points": int(excluded.sum()),
+        "target_distance_m": settings.d_t,
+        "coverage_distance_m": settings.d_c,
+        "n_points": settings.n_points,
+        "excluded_points": int(run.excluded.sum()),
         "coverage_excluded_points": int(cov_excluded.sum()),
         "final": final,
         "final_detail_pass": detail_parts,
-        "stages": rec.stages,
-        "timings_s": {**_stage_times(rec.stages), "tsp": tsp_time, "total": total},
+        "stages": run.rec.stages,
+        "timings_s": {**_stage_times(run.rec.stages), "tsp": tsp_time, "total": total},
         "objective_evaluations": evaluations,
         "rays_cast": rays,
         "takeoff": takeoff.tolist(),
@@ -491,8 +557,8 @@ def plan_with(
     }
     if budget is not None:
         info["budget"] = budget
-    if evidence is not None:
-        info["evidence"] = evidence
+    if run.evidence is not None:
+        info["evidence"] = run.evidence
     if time_term is not None:
         info["time_weight_per_pct"] = time_term.weight_per_pct
         info["time_reference_s"] = time_term.reference_s

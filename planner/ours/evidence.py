@@ -12,7 +12,7 @@ the cloud (``proxy.metadata[PROXY_CLOUD_KEY]``: points and unit normals, no grou
   ``radius_m``. At the rim of a bridged recess the cloud turns into the recess; the proxy does not.
 
 and, when the exploration's registered views come with the proxy and ``photo`` is set, one from its
-images (``planner.photo_evidence``):
+images (``planner.ours.photo_evidence``):
 
 - ``photo``: how little the sample's patch of proxy looks the same in the views that see it (mean
   NCC). A surface the cloud itself places centimetres off looks sure to the three above, not here.
@@ -30,7 +30,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from planner.photo_evidence import PhotoSettings, PhotoViews, photo_consistency
+from planner.ours.photo_evidence import PhotoSettings, PhotoViews, photo_consistency
 from scene.plan import PlanningError
 from scene.proxy_mesh import PROXY_CLOUD_KEY, PROXY_VIEWS_KEY
 
@@ -91,7 +91,7 @@ def evidence_signals(
     Args:
         points, normals: (P, 3) proxy samples and unit normals (world metres).
         cloud_points, cloud_normals: (N, 3) the exploration's fused cloud and its unit normals.
-        photo: ``planner.photo_evidence.photo_consistency``'s result for the same samples, if any.
+        photo: ``planner.ours.photo_evidence.photo_consistency``'s result for the same samples, if any.
 
     Returns:
         ``gap``, ``support``, ``normal`` (signals), ``gap_m``, ``support_ratio``, ``normal_deg``

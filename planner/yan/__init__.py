@@ -1,0 +1,1 @@
+"""Yan et al. 2021's baseline (``yan.plan``)."""
