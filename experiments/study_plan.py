@@ -177,8 +177,23 @@ def past_cell_hours(roots: Path | Sequence[Path]) -> pd.DataFrame:
         return pd.DataFrame(columns=["scene", "planner", "budget", "gsd", "hours"])
     frame = pd.concat(frames, ignore_index=True)
     keys = ["scene", "planner", "budget", "gsd"]
-    first = frame[frame["rank"] == frame.groupby(keys)["rank"].transform("min")]
-    return first.groupby(keys, as_index=False)["hours"].median()
+    groups = frame.groupby([*keys, "rank"], as_index=False)["hours"].median()
+    return corrected_hours(groups, keys)
+
+
+def corrected_hours(groups: pd.DataFrame, keys: list[str]) -> pd.DataFrame:
+    """Per group of ``keys``, the hours of its first root (``rank`` 0: this study's own records).
+    Hours from an earlier study's root are scaled by what this study's cells cost against that
+    study's same cells (the median ratio over the groups both recorded): the code in between got
+    slower or faster, and its cells' estimates with it."""
+    first = groups.loc[groups.groupby(keys)["rank"].idxmin()].set_index(keys)
+    own = groups[groups["rank"] == 0].set_index(keys)["hours"]
+    for rank in sorted(r for r in first["rank"].unique() if r > 0):
+        earlier = groups[groups["rank"] == rank].set_index(keys)["hours"]
+        shared = own.index.intersection(earlier.index)
+        if len(shared):
+            first.loc[first["rank"] == rank, "hours"] *= float((own[shared] / earlier[shared]).median())
+    return first.reset_index()[[*keys, "hours"]]
 
 
 def estimate_hours(cell: StudyCell, past: pd.DataFrame) -> float:

@@ -11,6 +11,7 @@ import pytest
 from experiments.study_plan import (
     OWN_LEVELS,
     StudyCell,
+    corrected_hours,
     estimate_hours,
     plan_table,
     study_cells,
@@ -69,6 +70,26 @@ def test_every_study_level_is_one_its_planner_defines():
                 )
                 values.append(record.get("budget_value"))
             assert len(values) == len(set(map(str, values))), planner
+
+
+def test_an_earlier_studys_hours_are_scaled_by_what_this_studys_same_cells_cost():
+    keys = ["scene", "planner", "budget"]
+    groups = pd.DataFrame(
+        [
+            ("tomb", "ours", "low", 0, 1.0),  # this study: 4x and 2x the earlier study's same cells
+            ("tomb", "ours", "low", 1, 0.25),
+            ("tomb", "ours", "high", 0, 2.0),
+            ("tomb", "ours", "high", 1, 1.0),
+            ("tomb", "ours", "mid", 0, 3.0),
+            ("tomb", "ours", "mid", 1, 1.0),
+            ("church", "smith", "low", 1, 0.5),  # only the earlier study: scaled by the median ratio
+        ],
+        columns=[*keys, "rank", "hours"],
+    )
+    hours = corrected_hours(groups, keys).set_index(keys)["hours"]
+    assert hours[("tomb", "ours", "low")] == 1.0 and hours[("tomb", "ours", "high")] == 2.0
+    assert hours[("church", "smith", "low")] == pytest.approx(0.5 * 3.0)  # median of 4, 2, 3
+    assert len(hours) == 4
 
 
 def test_cell_hours_come_from_the_most_similar_earlier_cell():
