@@ -216,7 +216,7 @@ def test_the_default_takes_sigma_from_the_photos_gnss_class(consumer_records, rt
     recon, used = resolved(cfg, rtk_records)
     assert recon["gnss"]["sigma_m"] == pytest.approx(0.02) and used["gnss"]["name"] == "rtk_fixed"
     assert recon["sfm"]["mapping"]["refine_focal_length"] is False  # nadir: held
-    assert recon["sfm"]["extraction"]["max_image_size"] == 1280
+    assert recon["sfm"]["extraction"]["max_image_size"] == 1024
 
 
 def test_reconstruct_consumer_gnss_reaches_the_sfm_settings_over_the_photos(rtk_records):
