@@ -1,7 +1,7 @@
 """Round trip of the photo workflow: a rendered exploratory flight written as a drone's JPEGs, run
 through ``uavplan plan-photos``, and compared with the simulated pipeline on the same images.
 
-    uavplan-study photo-roundtrip cache/exploration/<key> --out study/photo_roundtrip \\
+    uavplan-diagnose photo-roundtrip cache/exploration/<key> --out study/photo_roundtrip \\
         --gnss-sigma 0.02 -- scene=tomb planner=ours
 
 Each of the entry's images becomes a JPEG (quality 95) with EXIF GPS latitude, longitude and
