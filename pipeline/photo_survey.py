@@ -204,7 +204,10 @@ def plan_from_photos(cfg: DictConfig, run_dir: Path) -> dict:
             # The aligned cameras against their own GNSS fixes: how well the model fits the fixes.
             "gnss_residual_median_m": recon.get("position_error_median_m"),
             "gnss_residual_p90_m": recon.get("position_error_p90_m"),
-            "rotation_to_gimbal_median_deg": recon.get("rotation_error_median_deg"),
+            # Without a logged attitude the photos' rotations are placeholders: nothing to compare.
+            "rotation_to_gimbal_median_deg": recon.get("rotation_error_median_deg")
+            if attitude_logged
+            else None,
             "mapping": recon_cfg["sfm"]["mapping"]["method"],
         },
         "sanity": sanity,

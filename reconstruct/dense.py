@@ -336,14 +336,20 @@ def dense_reconstruct(
     Raises:
         ValueError: a bad setting, or the oracle asked for without a ground truth.
     """
-    DenseSettings.from_config(cfg)  # a bad setting is refused before the workspace is touched
-    backend = select_backend(str(cfg["backend"]))
+    settings = DenseSettings.from_config(cfg)  # a bad setting is refused before the workspace is touched
+    backend = select_backend(settings.backend)
     if backend == "oracle" and ground_truth is None:
         raise ValueError(
             "reconstruct.dense.backend=oracle needs the ground truth: only a simulated run has one"
         )
     start = time.perf_counter()
-    workspace = prepare_workspace(Path(sparse_dir), Path(image_dir), Path(out_dir) / "dense", cfg)
+    workspace = prepare_workspace(
+        Path(sparse_dir),
+        Path(image_dir),
+        Path(out_dir) / "dense",
+        cfg,
+        downscale_first=settings.downscale_before_undistorting,
+    )
     log.info("dense: %s back-end", backend)
     if backend == "cuda":
         valid = compute_depth_maps_cuda(workspace, cfg)

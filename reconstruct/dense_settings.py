@@ -120,6 +120,7 @@ class DenseSettings:
     partner_weights: str = setting("equal", choices=("equal", "precision"))
     partners_must_rectify: bool = setting(False)  # reconstruct.workspace.select_partners
     max_rectified_area_ratio: float = setting(4.0, above=1)  # reconstruct.rectify
+    downscale_before_undistorting: bool = setting(False)  # reconstruct.workspace.prepare_workspace
 
     def __post_init__(self) -> None:
         if not self.min_triangulation_angle_deg < self.max_triangulation_angle_deg:

@@ -949,6 +949,84 @@ def test_full_size_pinhole_workspace_is_linked_and_equals_the_undistorters(
     assert (linked / config).read_text().split() == (tmp_path / "colmap" / config).read_text().split()
 
 
+def test_downscaled_workspace_undistorts_a_lens_like_colmaps_undistorter(
+    box_flight, box_reconstruction, tmp_path
+):
+    """A photo flight's lens (SIMPLE_RADIAL, k1 = -0.1, the round trip's): downsizing before
+    undistorting gives COLMAP's undistorted cameras and poses, images within JPEG-and-filter noise of
+    the undistorter's, and keypoints where the workspace camera projects their 3D points."""
+    from experiments.photo_roundtrip import radial_warp
+
+    _, record = box_reconstruction
+    rec = pycolmap.Reconstruction(Path(record["sparse_dir"]))
+    k1 = -0.1
+    camera_id = next(iter(rec.cameras))
+    pinhole = rec.camera(camera_id)
+    focal, cx, cy = pinhole.params[0], pinhole.params[2], pinhole.params[3]
+    lens = pycolmap.Camera(
+        model="SIMPLE_RADIAL",
+        width=pinhole.width,
+        height=pinhole.height,
+        params=[focal, cx, cy, k1],
+        camera_id=camera_id,
+    )
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for image_id in rec.reg_image_ids():
+        image = rec.image(image_id)
+        rgb = cv2.imread(str(box_flight / image.name))[:, :, ::-1]
+        cv2.imwrite(str(photos / image.name), np.ascontiguousarray(radial_warp(rgb, k1, focal)[:, :, ::-1]))
+        xy = np.array([p.xy for p in image.points2D])
+        for point, moved in zip(
+            image.points2D,
+            lens.img_from_cam(np.column_stack([pinhole.cam_from_img(xy), np.ones(len(xy))])),
+            strict=True,
+        ):
+            point.xy = moved
+    rec.cameras[camera_id] = lens
+    sparse = tmp_path / "sparse"
+    sparse.mkdir()
+    rec.write(sparse)
+
+    ours = prepare_workspace(sparse, photos, tmp_path / "ours", {"max_image_size": 200}, downscale_first=True)
+    colmap = prepare_workspace(sparse, photos, tmp_path / "colmap", {"max_image_size": 200})
+    a, b = (pycolmap.Reconstruction(ws / "sparse") for ws in (ours, colmap))
+    assert a.camera(camera_id).model == pycolmap.CameraModelId.PINHOLE
+    assert (a.camera(camera_id).width, a.camera(camera_id).height) == (
+        b.camera(camera_id).width,
+        b.camera(camera_id).height,
+    )
+    small = pycolmap.Camera(model="SIMPLE_RADIAL", width=320, height=240, params=[focal, cx, cy, k1])
+    small.rescale(200, 150)
+    options = pycolmap.UndistortCameraOptions()
+    options.max_image_size = 200
+    np.testing.assert_allclose(a.camera(camera_id).params, pycolmap.undistort_camera(options, small).params)
+    # COLMAP finds the undistorted frame at 320 px and rounds it to whole pixels there, we at 200:
+    # the focal lengths agree to a pixel of the 150 px side.
+    np.testing.assert_allclose(a.camera(camera_id).params, b.camera(camera_id).params, rtol=1 / 150)
+    reprojection = []
+    for image_id in b.reg_image_ids():
+        mine, theirs = a.image(image_id), b.image(image_id)
+        np.testing.assert_allclose(
+            mine.cam_from_world().matrix(), theirs.cam_from_world().matrix(), atol=1e-12
+        )
+        x, y = (cv2.imread(str(ws / "images" / mine.name)).astype(float) for ws in (ours, colmap))
+        assert x.shape == y.shape
+        # Two resamplings of one photo (area average then bilinear, against bilinear then the
+        # undistorter's downsizing), each saved as JPEG: grey levels of 255.
+        assert np.abs(x - y)[4:-4, 4:-4].mean() < 2.0  # measured 1.1
+        for point in mine.points2D:
+            if point.has_point3D():
+                projected = a.camera(camera_id).img_from_cam(
+                    mine.cam_from_world() * a.point3D(point.point3D_id).xyz
+                )
+                reprojection.append(np.linalg.norm(projected - point.xy))
+    # SfM's reprojection error at 320 px (below a pixel) scaled to the 200 px workspace.
+    assert np.median(reprojection) < 0.2  # measured 0.09
+    config = "stereo/patch-match.cfg"
+    assert (ours / config).read_text().split() == (colmap / config).read_text().split()
+
+
 def test_reconstruct_flight_reuses_unchanged_outputs(box_flight, box_reconstruction):
     out_dir, record = box_reconstruction
     again = reconstruct_flight(box_flight, out_dir, reconstruct_cfg(), seed=0)
