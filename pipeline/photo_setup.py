@@ -187,6 +187,9 @@ def photo_reconstruct_config(
         gnss = {**klass, "sigma_m": sigma, "source": "yours (reconstruct.gnss.sigma_m)"}
     camera = camera_from_photos(records, str(photos.get("camera", "auto")))
     allowed, why = refinement_allowed(viewpoints)
+    if not any(r.pitch_deg is not None for r in records):
+        # Pitch taken as nadir for lack of a logged one: the rule cannot see an oblique flight.
+        allowed, why = False, "no gimbal pitch in the photos (no DJI XMP): camera held"
     mapping = cfg["sfm"]["mapping"]
     refine = {}
     for key in ("refine_focal_length", "refine_extra_params"):
@@ -205,8 +208,8 @@ def photo_reconstruct_config(
             **camera,
             "model": "PINHOLE",
             "params": [f, f, cx, cy],
-            "why": f"EXIF focal length ({f:.1f} px), no DJI calibration in the XMP: SIMPLE_RADIAL held "
-            "with the camera is a pinhole (k = 0)",
+            "why": f"EXIF focal length ({f:.1f} px) as a pinhole: no DJI calibration in the XMP, and "
+            "the radial term is held at k = 0",
         }
     if not camera["refinable"] and not allowed:
         refine["why"] = f"{camera['why']}; {why}"

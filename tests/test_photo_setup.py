@@ -219,6 +219,21 @@ def test_the_default_takes_sigma_from_the_photos_gnss_class(consumer_records, rt
     assert recon["sfm"]["extraction"]["max_image_size"] == 1024
 
 
+def test_photos_without_a_logged_pitch_hold_the_camera_as_a_pinhole(consumer_records):
+    """No XMP: the pitch is taken as nadir, so the rule says why it cannot judge the flight, and
+    the held one-term lens is written as the pinhole it is."""
+    import dataclasses
+
+    bare = [dataclasses.replace(r, pitch_deg=None, heading_deg=None) for r in consumer_records]
+    recon, used = resolved(compose_photos(), bare)
+    assert recon["sfm"]["mapping"]["refine_focal_length"] is False
+    assert recon["sfm"]["mapping"]["refine_extra_params"] is False
+    assert used["refine"]["why"].endswith("no gimbal pitch in the photos (no DJI XMP): camera held")
+    assert used["camera"]["model"] == "PINHOLE"
+    focal = bare[0].focal_px
+    assert used["camera"]["params"] == [focal, focal, bare[0].width / 2.0, bare[0].height / 2.0]
+
+
 def test_reconstruct_consumer_gnss_reaches_the_sfm_settings_over_the_photos(rtk_records):
     recon, used = resolved(compose_photos("reconstruct=consumer_gnss"), rtk_records)
     assert recon["gnss"]["sigma_m"] == 2.0  # the group chosen, though the photos say RTK
