@@ -3,6 +3,7 @@
     uavplan run scene=tomb planner=ours           # one cell (Hydra overrides, as ``python run.py``)
     uavplan run -m scene=tomb,church planner=ours  # a sweep
     uavplan view RUN_DIR --out plan.html           # a run's plan, interactive, in a browser
+    uavplan stage dense RUN_DIR                    # one stage of a kept run again, on its files
 
 ``dispatch`` gives ``uavplan-study``, ``uavplan-diagnose``, ``uavplan-bench`` (and ``uavplan``) their
 sub-commands: each is a module whose ``main(argv) -> int`` parses its own arguments.
@@ -128,7 +129,12 @@ def _summary(target: str) -> str:
     return ""
 
 
-COMMANDS = {"run": "!_run", "plan-photos": "!_plan_photos", "view": "experiments.viewer"}
+COMMANDS = {
+    "run": "!_run",
+    "plan-photos": "!_plan_photos",
+    "stage": "pipeline.stages",
+    "view": "experiments.viewer",
+}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

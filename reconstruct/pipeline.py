@@ -104,14 +104,8 @@ def reconstruct_flight(
             alignment, or no dense points; its ``record`` carries the failure for ``metrics.json``.
     """
     image_dir, out_dir = Path(image_dir), Path(out_dir)
-    flight = read_flight(image_dir)
     cfg = stage_node(cfg)
-    min_images = int(cfg["min_images"])
-    if len(flight) < max(min_images, 2):
-        raise ReconstructionError(
-            f"{image_dir}: {len(flight)} images, the reconstruction needs at least {max(min_images, 2)}",
-            {"stage": "input", "n_images": len(flight), "n_registered": 0, "registered_fraction": 0.0},
-        )
+    flight = _checked_flight(image_dir, cfg)
     key = flight_content_key(image_dir, flight, cfg, seed)
     cached = cached_record(out_dir, key, RECORD_FILE, ("sparse", "dense.ply", "database.db"))
     if cached is not None:
@@ -125,17 +119,7 @@ def reconstruct_flight(
         for old_log in out_dir.glob("colmap.log.*"):
             old_log.unlink()
 
-    sigma = float(cfg["gnss"]["sigma_m"])
-    # A real flight's fixes are the priors; a rendered one's true positions get simulated noise.
-    gnss = flight.positions if flight.gnss_measured else simulate_gnss(flight.positions, sigma, seed)
-    write_json_atomic(
-        out_dir / "gnss.json",
-        {
-            "sigma_m": sigma,
-            "seed": int(seed),
-            "positions": dict(zip(flight.names, gnss.tolist(), strict=True)),
-        },
-    )
+    gnss, sigma = _write_gnss(flight, out_dir, cfg, seed)
     record: dict = {"status": "running", "n_images": len(flight), "gnss_sigma_m": sigma}
     try:
         with colmap_log_to(out_dir):
@@ -154,7 +138,9 @@ def reconstruct_flight(
                 record |= _drop(sparse_stage, ("status", "content_key")) | {"resumed_after_sfm": True}
             if sparse_check is not None:
                 sparse_check(record)
-            record |= _dense_stage(flight, out_dir, cfg, record, ground_truth, seed)
+            record |= _dense_stage(
+                flight.image_dir, out_dir / "sparse", out_dir, cfg, record, ground_truth, seed
+            )
     except ReconstructionError as exc:
         exc.record = record | {"status": "failed", "cached": False} | exc.record
         write_json_atomic(out_dir / RECORD_FILE, exc.record | {"content_key": key})
@@ -163,6 +149,74 @@ def reconstruct_flight(
     record["deterministic"] = bool(cfg["deterministic"])
     write_json_atomic(out_dir / RECORD_FILE, record)
     return record
+
+
+def sfm_flight(image_dir, out_dir, cfg: Mapping | StageSettings, seed: int) -> dict:
+    """The SfM stage alone, uncached (``uavplan stage sfm``): SfM with GNSS priors and the
+    alignment to them. Writes ``out_dir/``: ``database.db``, ``gnss.json``, ``sparse/`` (aligned,
+    world metres), ``colmap.log.*``.
+
+    Returns:
+        the record ``reconstruct_flight`` keeps in ``sfm.json`` (registration, pose errors, times).
+
+    Raises:
+        ReconstructionError: as ``reconstruct_flight``'s SfM half.
+    """
+    image_dir, out_dir = Path(image_dir), Path(out_dir)
+    cfg = stage_node(cfg)
+    flight = _checked_flight(image_dir, cfg)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    gnss, sigma = _write_gnss(flight, out_dir, cfg, seed)
+    record: dict = {"status": "running", "n_images": len(flight), "gnss_sigma_m": sigma}
+    with colmap_log_to(out_dir):
+        return _sparse_stage(flight, out_dir, gnss, sigma, cfg, seed, record) | {"status": "ok"}
+
+
+def dense_flight(
+    image_dir, sparse_dir, out_dir, cfg: Mapping | StageSettings, seed: int, ground_truth=None
+) -> dict:
+    """The dense stage alone, uncached (``uavplan stage dense``): depth maps and fusion of the
+    aligned model ``sparse_dir`` over the images of ``image_dir``, into ``out_dir/dense.ply`` (world
+    metres) and ``out_dir/dense/`` (the workspace).
+
+    Returns:
+        the dense fields of ``reconstruct_flight``'s record (``dense_ply``, ``n_dense_points``, ...).
+
+    Raises:
+        ReconstructionError: no dense points.
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    return _dense_stage(Path(image_dir), Path(sparse_dir), out_dir, stage_node(cfg), {}, ground_truth, seed)
+
+
+def _checked_flight(image_dir: Path, cfg: Mapping) -> Flight:
+    """The rendered (or photographed) flight in ``image_dir``, refused below ``min_images``."""
+    flight = read_flight(image_dir)
+    min_images = int(cfg["min_images"])
+    if len(flight) < max(min_images, 2):
+        raise ReconstructionError(
+            f"{image_dir}: {len(flight)} images, the reconstruction needs at least {max(min_images, 2)}",
+            {"stage": "input", "n_images": len(flight), "n_registered": 0, "registered_fraction": 0.0},
+        )
+    return flight
+
+
+def _write_gnss(flight: Flight, out_dir: Path, cfg: Mapping, seed: int) -> tuple[np.ndarray, float]:
+    """The GNSS priors (m, world frame) and their sigma (m), written to ``out_dir/gnss.json``.
+
+    A real flight's fixes are the priors; a rendered one's true positions get simulated noise."""
+    sigma = float(cfg["gnss"]["sigma_m"])
+    gnss = flight.positions if flight.gnss_measured else simulate_gnss(flight.positions, sigma, seed)
+    write_json_atomic(
+        out_dir / "gnss.json",
+        {
+            "sigma_m": sigma,
+            "seed": int(seed),
+            "positions": dict(zip(flight.names, gnss.tolist(), strict=True)),
+        },
+    )
+    return gnss, sigma
 
 
 def _drop(record: Mapping, keys) -> dict:
@@ -229,14 +283,19 @@ def _sparse_stage(
 
 
 def _dense_stage(
-    flight: Flight, out_dir: Path, cfg: Mapping, record: dict, ground_truth=None, seed: int = 0
+    image_dir: Path,
+    sparse_dir: Path,
+    out_dir: Path,
+    cfg: Mapping,
+    record: dict,
+    ground_truth=None,
+    seed: int = 0,
 ) -> dict:
-    """Depth maps and fusion on the aligned model in ``out_dir/sparse``. Returns the record so far."""
-    sparse_dir = out_dir / "sparse"
+    """Depth maps and fusion on the aligned model in ``sparse_dir``. Returns the record so far."""
     with stage_time() as clock:
         dense = dense_reconstruct(
             sparse_dir,
-            flight.image_dir,
+            image_dir,
             out_dir,
             cfg["dense"],
             bool(cfg["deterministic"]),
@@ -253,9 +312,7 @@ def _dense_stage(
         "fusion_max_memory_gb": dense["fusion_max_memory_gb"],
     }
     if dense["dense_path"] is None or dense["n_dense_points"] == 0:
-        raise ReconstructionError(
-            f"{flight.image_dir}: dense reconstruction produced no points", {"stage": "dense"}
-        )
+        raise ReconstructionError(f"{image_dir}: dense reconstruction produced no points", {"stage": "dense"})
     record["dense_ply"] = dense["dense_path"]
     if not bool(cfg.get("keep_dense_workspace", True)):
         record["dense_workspace_freed_mb"] = _remove_tree(out_dir / "dense") / 1e6
