@@ -26,10 +26,12 @@ a value the user gives (a group choice such as ``reconstruct=consumer_gnss``, or
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
+import pycolmap
 
 from pipeline.photos import PhotoError, PhotoRecord
 
@@ -169,8 +171,6 @@ def photo_reconstruct_config(
         ``reconstruct.gnss.sigma_m``), ``camera`` (model, params, source, why), ``refine`` (focal,
         extra params, why)).
     """
-    import copy
-
     cfg = copy.deepcopy(dict(reconstruct))
     cfg["gnss"] = dict(cfg["gnss"])
     cfg["sfm"] = {**cfg["sfm"], "mapping": dict(cfg["sfm"]["mapping"])}
@@ -309,8 +309,6 @@ def level_to_gimbal(sparse_dir, flight, max_tilt_deg: float) -> float | None:
     by about sigma / (spread sqrt(N)): 2.2 deg on 100 rendered photos of a 60 m site at 2.5 m noise,
     which put the cameras 0.75 m (median) from the truth; levelled, 0.37 m and 0.3 deg
     (results/photos.md). The gimbal's pitch and roll, held to gravity, know the vertical better."""
-    import pycolmap
-
     rec = pycolmap.Reconstruction(str(sparse_dir))
     index = {n: i for i, n in enumerate(flight.names)}
     ids = [i for i in rec.reg_image_ids() if rec.image(i).name in index]

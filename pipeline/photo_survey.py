@@ -23,20 +23,91 @@ import math
 import threading
 import time
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pycolmap
+import trimesh
 from omegaconf import DictConfig
 
+from drone.model import DroneSettings
+from evaluate.settings import EvaluationSettings
+from mission.controllers import ControllerError, caps_for
 from mission.export import export_mission
+from mission.geo import SurveyOrigin
+from pipeline.cell import plan_stage
+from pipeline.photo_figure import write_flight_figure
+from pipeline.photo_setup import level_to_gimbal, photo_reconstruct_config, sanity_failures
+from pipeline.photos import (
+    PhotoError,
+    PhotoReport,
+    ground_origin,
+    local_viewpoints,
+    parse_origin,
+    photo_intrinsics,
+    read_photos,
+    takeoff_height_known,
+    takeoff_origin,
+    write_photo_flight,
+)
+from pipeline.proxy import CLOUD_VOXEL_M, PROXY_FILE, load_proxy
+from pipeline.settings import SettingsError, check_planner, planner_setup
+from reconstruct.align import pose_errors
+from reconstruct.dense_settings import DenseSettings
+from reconstruct.errors import ReconstructionError
+from reconstruct.flight import read_flight
+from reconstruct.pipeline import build_proxy
+from reconstruct.proxy import oriented_cloud
+from reconstruct.sfm_settings import SfmSettings
+from reconstruct.timing import cpu_seconds
+from scene.base import Box
+from scene.camera import Intrinsics
 from scene.config import plain
 from scene.io import write_json_atomic
+from scene.proxy_mesh import PROXY_CLOUD_KEY, PROXY_VIEWS_KEY
 
 log = logging.getLogger("plan_photos")
 
 # A ground further than this fraction of the photos' height from the take-off height is reported.
 DEPTH_CHECK_FRACTION = 0.05
 MISSION_FILES = {"qgc": "mission.plan", "litchi": "mission.csv", "wpml": "mission.kmz"}
+
+
+@dataclass(frozen=True)
+class _JobSettings:
+    """Every setting the job uses, checked and typed before the first photo is read."""
+
+    folder: Path
+    photos: dict  # ``cfg.photos`` as plain values
+    reconstruct: dict  # ``cfg.reconstruct`` as plain values (``auto`` resolved once the photos are read)
+    min_photos: int
+    planner_target: str
+    planner_name: str
+    params: DictConfig  # the planner's parameters (``pipeline.settings.planner_setup``)
+    budget: dict
+    evaluation: EvaluationSettings
+    drone: DroneSettings
+    given_origin: SurveyOrigin | None
+    seed: int
+    target_gsd_m: float
+    flight_order: str
+
+
+@dataclass(frozen=True)
+class _PhotoFlight:
+    """The photos read into a local flight, with what was resolved from them."""
+
+    report: PhotoReport
+    origin: SurveyOrigin  # provisional where ``height_known`` is False
+    height_known: bool
+    caps: dict
+    recon_cfg: dict
+    used: dict
+    image_dir: Path
+    intrinsics: Intrinsics
+    roi: Box | None
+    attitude_logged: bool
 
 
 def plan_from_photos(cfg: DictConfig, run_dir: Path) -> dict:
@@ -48,29 +119,34 @@ def plan_from_photos(cfg: DictConfig, run_dir: Path) -> dict:
         pipeline.settings.SettingsError: a bad setting (before any photo is reconstructed).
         reconstruct.errors.ReconstructionError, scene.plan.PlanningError: a stage failed.
     """
-    from drone.model import DroneSettings
-    from evaluate.settings import EvaluationSettings
-    from mission.controllers import ControllerError, caps_for
-    from pipeline.cell import plan_stage
-    from pipeline.photo_setup import photo_reconstruct_config
-    from pipeline.photos import (
-        local_viewpoints,
-        parse_origin,
-        photo_intrinsics,
-        read_photos,
-        takeoff_height_known,
-        takeoff_origin,
-        write_photo_flight,
-    )
-    from pipeline.proxy import PROXY_FILE
-    from pipeline.settings import SettingsError, check_planner, planner_setup
-    from reconstruct.dense_settings import DenseSettings
-    from reconstruct.flight import read_flight
-    from reconstruct.sfm_settings import SfmSettings
-    from reconstruct.timing import cpu_seconds
-
     start, cpu_start = time.perf_counter(), cpu_seconds()
     run_dir = Path(run_dir)
+    job = _checked_settings(cfg)
+    flight = _read_flight(job, run_dir)
+    mesh, recon, sanity = _reconstruct_with_gate(
+        flight.image_dir, run_dir, flight.recon_cfg, job.seed, flight.roi, job.photos, flight.attitude_logged
+    )
+    origin, ground, ground_record = _settle_ground(flight, recon, mesh)
+    mesh.export(run_dir / PROXY_FILE)
+    proxy = _photo_proxy(
+        run_dir, Path(recon["sparse_dir"]).parent, flight.image_dir, 0.0 if flight.height_known else ground
+    )
+    plan, plan_record, missions = _plan_and_export(job, flight, proxy, origin, run_dir)
+    registered = _registered_names(Path(recon["sparse_dir"]))
+    result = _report(
+        job, flight, origin, ground_record, recon, sanity, mesh, plan, plan_record, missions, registered
+    )
+    _write_report(result, run_dir, proxy, flight.image_dir, plan, plan_record, registered, start, cpu_start)
+    return result
+
+
+def _checked_settings(cfg: DictConfig) -> _JobSettings:
+    """Every setting checked before the first photo is read, as the typed values the job uses.
+
+    Raises:
+        pipeline.settings.SettingsError: a planner, budget, dense, evaluation or drone setting, the
+            given origin or the roi's form (the message names it).
+    """
     folder = Path(str(cfg.photos.dir))
     photos_cfg = plain(cfg.photos)
     try:  # every setting before the first photo is read
@@ -83,16 +159,37 @@ def plan_from_photos(cfg: DictConfig, run_dir: Path) -> dict:
             site_box(photos_cfg["roi"], given_origin or parse_origin([0.0, 0.0, 0.0]))
     except ValueError as exc:
         raise SettingsError(str(exc)) from exc
+    return _JobSettings(
+        folder=folder,
+        photos=photos_cfg,
+        reconstruct=plain(cfg.reconstruct),
+        min_photos=int(cfg.photos.min_photos),
+        planner_target=str(cfg.planner._target_),
+        planner_name=cfg.planner.name,
+        params=params,
+        budget=budget,
+        evaluation=evaluation,
+        drone=drone,
+        given_origin=given_origin,
+        seed=int(cfg.seed),
+        target_gsd_m=float(cfg.survey.target_gsd_m),
+        flight_order=str(cfg.survey.get("flight_order", "planner")),
+    )
 
-    report = read_photos(folder, int(cfg.photos.min_photos))
+
+def _read_flight(job: _JobSettings, run_dir: Path) -> _PhotoFlight:
+    """Read the photos, resolve the reconstruction's config, the camera, the mission caps and the
+    origin from them, and write them as a local flight into ``run_dir / "images"``."""
+    photos_cfg = job.photos
+    report = read_photos(job.folder, job.min_photos)
     try:
         caps = caps_for(report.records[0].camera, str(photos_cfg["controller"]), photos_cfg["max_waypoints"])
     except ControllerError as exc:
         raise SettingsError(str(exc)) from exc
-    height_known = given_origin is not None or takeoff_height_known(report.records)
-    origin = takeoff_origin(report.records, given_origin)
+    height_known = job.given_origin is not None or takeoff_height_known(report.records)
+    origin = takeoff_origin(report.records, job.given_origin)
     recon_cfg, used = photo_reconstruct_config(
-        plain(cfg.reconstruct), photos_cfg, report.records, local_viewpoints(report.records, origin)
+        job.reconstruct, photos_cfg, report.records, local_viewpoints(report.records, origin)
     )
     try:
         SfmSettings.from_config(recon_cfg["sfm"])
@@ -100,17 +197,17 @@ def plan_from_photos(cfg: DictConfig, run_dir: Path) -> dict:
         raise SettingsError(str(exc)) from exc
     used["origin"] = {
         "source": "photos.origin"
-        if given_origin is not None
+        if job.given_origin is not None
         else ("RelativeAltitude" if height_known else "the ground under the flight (reconstruction)"),
     }
     used["mission_caps"] = caps
     _log_settings(used, len(report.records), report.records[0].camera)
     image_dir = write_photo_flight(
-        folder, run_dir / "images", report, origin, used["camera"], photos_cfg.get("proxy_image_size")
+        job.folder, run_dir / "images", report, origin, used["camera"], photos_cfg.get("proxy_image_size")
     )
     intrinsics = photo_intrinsics(report.records, used["camera"])  # the photos' own size: the plan's
     try:
-        check_planner(str(cfg.planner._target_), params, intrinsics)
+        check_planner(job.planner_target, job.params, intrinsics)
     except ValueError as exc:
         raise SettingsError(str(exc)) from exc
     log.info(
@@ -123,17 +220,29 @@ def plan_from_photos(cfg: DictConfig, run_dir: Path) -> dict:
         if height_known
         else " (provisional: the photos' altitude; moved to the ground once reconstructed)",
     )
-
-    seed = int(cfg.seed)
-    roi = site_box(photos_cfg["roi"], origin) if photos_cfg.get("roi") is not None else None
-    attitude_logged = all(r.pitch_deg is not None and r.heading_deg is not None for r in report.records)
-    mesh, recon, sanity = _reconstruct_with_gate(
-        image_dir, run_dir, recon_cfg, seed, roi, photos_cfg, attitude_logged
+    return _PhotoFlight(
+        report=report,
+        origin=origin,
+        height_known=height_known,
+        caps=caps,
+        recon_cfg=recon_cfg,
+        used=used,
+        image_dir=image_dir,
+        intrinsics=intrinsics,
+        roi=site_box(photos_cfg["roi"], origin) if photos_cfg.get("roi") is not None else None,
+        attitude_logged=all(r.pitch_deg is not None and r.heading_deg is not None for r in report.records),
     )
+
+
+def _settle_ground(flight: _PhotoFlight, recon: dict, mesh) -> tuple[SurveyOrigin, float, dict]:
+    """The ground under the flight after the reconstruction: checked against the take-off height
+    where the photos gave one, else the origin (and ``mesh``, in place) moved onto it. Returns the
+    origin, the ground's local z and the report's ``ground`` record."""
+    origin = flight.origin
     ground = _ground_height(Path(recon["sparse_dir"]), Path(recon["dense_ply"]))
     ground_record = {"ground_z_m": round(ground, 3)}
-    photo_height = float(np.median(local_viewpoints(report.records, origin)[:, 2]))
-    if height_known and abs(ground) > DEPTH_CHECK_FRACTION * max(photo_height, 1.0):
+    photo_height = float(np.median(local_viewpoints(flight.report.records, origin)[:, 2]))
+    if flight.height_known and abs(ground) > DEPTH_CHECK_FRACTION * max(photo_height, 1.0):
         # With the camera held, the focal length sets the scene's depth below the fixed centres: a
         # ground this far from the take-off height says the focal length may be off by about as much
         # (or the take-off point was not on the ground under the flight).
@@ -143,10 +252,8 @@ def plan_from_photos(cfg: DictConfig, run_dir: Path) -> dict:
             "focal length may be off by about as much, or the take-off point was not on this ground"
         )
         log.warning("depth check: %s", ground_record["depth_check"])
-    if not height_known:
+    if not flight.height_known:
         # No take-off height in the photos: z = 0 (and the ceiling) on the ground under the flight.
-        from pipeline.photos import ground_origin
-
         origin = ground_origin(origin, ground)
         mesh.apply_translation([0.0, 0.0, -ground])
         ground_record |= {
@@ -160,35 +267,57 @@ def plan_from_photos(cfg: DictConfig, run_dir: Path) -> dict:
             origin.height_m,
             -ground,
         )
-    mesh.export(run_dir / PROXY_FILE)
-    proxy = _photo_proxy(
-        run_dir, Path(recon["sparse_dir"]).parent, image_dir, 0.0 if height_known else ground
-    )
+    return origin, ground, ground_record
+
+
+def _plan_and_export(job: _JobSettings, flight: _PhotoFlight, proxy, origin: SurveyOrigin, run_dir: Path):
+    """The planner on ``proxy`` into ``run_dir / "plan"``, and its missions in ``origin``'s
+    coordinates into ``run_dir / "missions"``. Returns (plan, plan record, mission files by format)."""
     with progress("planning"):
         plan, plan_record = plan_stage(
             proxy,
-            intrinsics,
-            str(cfg.planner._target_),
-            params,
-            seed,
-            drone,
-            evaluation,
-            float(cfg.survey.target_gsd_m),
+            flight.intrinsics,
+            job.planner_target,
+            job.params,
+            job.seed,
+            job.drone,
+            job.evaluation,
+            job.target_gsd_m,
             run_dir / "plan",
-            str(cfg.survey.get("flight_order", "planner")),
+            job.flight_order,
         )
     missions = {}
     for fmt, name in MISSION_FILES.items():
         _, paths = export_mission(
-            np.asarray(plan.viewpoints), origin, drone, fmt, run_dir / "missions" / name, caps[fmt]
+            np.asarray(plan.viewpoints), origin, job.drone, fmt, run_dir / "missions" / name, flight.caps[fmt]
         )
         missions[fmt] = [str(p) for p in paths]
+    return plan, plan_record, missions
 
-    registered = _registered_names(Path(recon["sparse_dir"]))
+
+def _report(
+    job: _JobSettings,
+    flight: _PhotoFlight,
+    origin: SurveyOrigin,
+    ground_record: dict,
+    recon: dict,
+    sanity: dict,
+    mesh,
+    plan,
+    plan_record: dict,
+    missions: dict,
+    registered: set[str],
+) -> dict:
+    """``report.json``'s content, less ``figure``, ``time_s`` and ``cpu_s`` (``_write_report``)."""
+    report, used = flight.report, flight.used
     lo, hi = mesh.bounds
     heights = np.asarray(plan.viewpoints)[:, 2]
-    result = {
-        "photos": {**report.as_dict(), "folder": str(folder.resolve()), "camera": report.records[0].camera},
+    return {
+        "photos": {
+            **report.as_dict(),
+            "folder": str(job.folder.resolve()),
+            "camera": report.records[0].camera,
+        },
         "settings_used": used,
         "origin": {
             "latitude_deg": origin.latitude_deg,
@@ -206,9 +335,9 @@ def plan_from_photos(cfg: DictConfig, run_dir: Path) -> dict:
             "gnss_residual_p90_m": recon.get("position_error_p90_m"),
             # Without a logged attitude the photos' rotations are placeholders: nothing to compare.
             "rotation_to_gimbal_median_deg": recon.get("rotation_error_median_deg")
-            if attitude_logged
+            if flight.attitude_logged
             else None,
-            "mapping": recon_cfg["sfm"]["mapping"]["method"],
+            "mapping": flight.recon_cfg["sfm"]["mapping"]["method"],
         },
         "sanity": sanity,
         "proxy": {
@@ -216,18 +345,31 @@ def plan_from_photos(cfg: DictConfig, run_dir: Path) -> dict:
             "bounds_m": [lo.round(2).tolist(), hi.round(2).tolist()],
             "n_faces": len(mesh.faces),
         },
-        "plan": {**budget, **plan_record, "planner": cfg.planner.name},
+        "plan": {**job.budget, **plan_record, "planner": job.planner_name},
         "waypoints": {
             "height_min_m": round(float(heights.min()), 2),
             "height_max_m": round(float(heights.max()), 2),
-            "ceiling_m": drone.ceiling_m,
-            "floor_m": drone.min_height_m,
+            "ceiling_m": job.drone.ceiling_m,
+            "floor_m": job.drone.min_height_m,
         },
         "missions": missions,
     }
-    try:
-        from pipeline.photo_figure import write_flight_figure
 
+
+def _write_report(
+    result: dict,
+    run_dir: Path,
+    proxy,
+    image_dir: Path,
+    plan,
+    plan_record: dict,
+    registered: set[str],
+    start: float,
+    cpu_start: float,
+) -> None:
+    """Draw ``flight.png`` (a failure to draw it is logged, not raised), add the figure and the
+    times to ``result``, write it as ``report.json`` and log the run's summary."""
+    try:
         result["figure"] = str(
             write_flight_figure(
                 run_dir / "flight.png", proxy, read_flight(image_dir), plan, registered, result
@@ -238,6 +380,7 @@ def plan_from_photos(cfg: DictConfig, run_dir: Path) -> dict:
     result["time_s"] = time.perf_counter() - start
     result["cpu_s"] = cpu_seconds() - cpu_start
     write_json_atomic(run_dir / "report.json", result)
+    heights = np.asarray(plan.viewpoints)[:, 2]
     log.info(
         "plan-photos: %d of %d photos registered (GNSS residual median %.3f m); proxy %s m; %d views at "
         "%.1f-%.1f m above take-off, %.1f min, %d batteries; missions in %s; %.0f s (%.0f s CPU)",
@@ -254,7 +397,6 @@ def plan_from_photos(cfg: DictConfig, run_dir: Path) -> dict:
         result["time_s"],
         result["cpu_s"],
     )
-    return result
 
 
 def _log_settings(used: dict, n_photos: int, camera: str) -> None:
@@ -288,15 +430,6 @@ def _reconstruct_with_gate(image_dir, run_dir, recon_cfg, seed, roi, photos_cfg,
     """``build_proxy`` behind the sanity gate: a model that fails it is mapped again with the other
     mapper (incremental <-> global), and refused when that fails too. Returns (mesh, record, the
     gate's record)."""
-    import pycolmap
-
-    from pipeline.photo_setup import level_to_gimbal, sanity_failures
-    from pipeline.photos import PhotoError
-    from reconstruct.align import pose_errors
-    from reconstruct.errors import ReconstructionError
-    from reconstruct.flight import read_flight
-    from reconstruct.pipeline import build_proxy
-
     sigma = float(recon_cfg["gnss"]["sigma_m"])
     tries = []
 
@@ -388,8 +521,6 @@ def _reconstruct_with_gate(image_dir, run_dir, recon_cfg, seed, roi, photos_cfg,
 def registration_refusal(exc, recon_cfg: dict) -> Exception:
     """A reconstruction that registered too few photos, refused in one line with the setting that
     would take what it registered (typed as it runs); any other failure as it was."""
-    from pipeline.photos import PhotoError
-
     fraction = exc.record.get("registered_fraction")
     if fraction is None or exc.record.get("stage") not in ("mapping", "align", "proxy") or fraction <= 0:
         return exc
@@ -469,15 +600,8 @@ def _photo_proxy(run_dir: Path, recon_dir: Path, image_dir: Path, shift_z: float
     """The proxy as ``pipeline.proxy.load_proxy`` gives it, its cloud from the reconstruction that
     passed the gate (``recon_dir``), moved down by ``shift_z`` (m) with the mesh where the take-off
     height came from the ground; the registered views go with it only where nothing moved."""
-    from pipeline.proxy import CLOUD_VOXEL_M, PROXY_FILE, load_proxy
-    from reconstruct.proxy import oriented_cloud
-    from scene.base import Box
-    from scene.proxy_mesh import PROXY_CLOUD_KEY, PROXY_VIEWS_KEY
-
     if recon_dir == run_dir / "recon" and shift_z == 0.0:
         return load_proxy(run_dir)
-    import trimesh
-
     proxy = trimesh.load(run_dir / PROXY_FILE, force="mesh", process=False)
     dense_ply = recon_dir / "dense.ply"
     if dense_ply.is_file():
@@ -493,9 +617,6 @@ def _photo_proxy(run_dir: Path, recon_dir: Path, image_dir: Path, shift_z: float
 def _ground_height(sparse_dir: Path, dense_ply: Path) -> float:
     """The ground under the flight (m, local z): the 10th height percentile of the dense cloud's
     points below the cameras' horizontal extent (the sparse points' where the cloud is empty)."""
-    import pycolmap
-    import trimesh
-
     rec = pycolmap.Reconstruction(str(sparse_dir))
     centres = np.array([rec.image(i).projection_center() for i in rec.reg_image_ids()])
     try:
@@ -513,9 +634,6 @@ def _ground_height(sparse_dir: Path, dense_ply: Path) -> float:
 def site_box(text, origin):
     """The local box (``scene.base.Box``, metres; all heights) of a ``[SOUTH,WEST,NORTH,EAST]`` site
     (a list, as Hydra takes it typed, or a string)."""
-    from pipeline.photos import PhotoError
-    from scene.base import Box
-
     parts = text.replace("[", "").replace("]", "").split(",") if isinstance(text, str) else list(text)
     try:
         south, west, north, east = (float(v) for v in parts)
@@ -536,7 +654,5 @@ def site_box(text, origin):
 
 
 def _registered_names(sparse_dir: Path) -> set[str]:
-    import pycolmap
-
     rec = pycolmap.Reconstruction(str(sparse_dir))
     return {rec.image(i).name for i in rec.reg_image_ids()}

@@ -27,6 +27,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import pyexiv2
+from PIL import Image
 
 from mission.geo import SurveyOrigin
 from scene.camera import Intrinsics
@@ -147,8 +149,6 @@ def _rtk(xmp: dict) -> tuple[int | None, tuple[float, float, float] | None]:
 
 
 def _register_dji_namespace() -> None:
-    import pyexiv2
-
     try:
         pyexiv2.registerNs(*DJI_XMP_NAMESPACE)
     except RuntimeError:  # registered already
@@ -162,9 +162,6 @@ def read_photo(path: Path) -> PhotoRecord:
         PhotoError: no GPS position, a position outside [-90, 90] x [-180, 180], no focal length,
             or metadata exiv2 cannot read (the message says which).
     """
-    import pyexiv2
-    from PIL import Image
-
     _register_dji_namespace()
     try:
         with pyexiv2.Image(str(path)) as image:
@@ -434,8 +431,6 @@ def scaled_camera(colmap_camera: dict, scale: float) -> dict:
 def _downscaled(source: Path, target: Path, max_size: int) -> float:
     """Write ``source`` (a JPEG) with its longest side at most ``max_size`` px; return the scale
     (JPEG DCT scaling on read, then a Lanczos resize to the exact size)."""
-    from PIL import Image
-
     with Image.open(source) as image:
         width, height = image.size
         scale = max_size / max(width, height)
