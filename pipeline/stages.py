@@ -1,6 +1,6 @@
 """One stage of a kept run directory, re-run on its files: ``uavplan stage STAGE RUN_DIR``.
 
-    uavplan stage render   RUN_DIR  # plan/viewpoints.csv + the scene -> images/, cameras.json
+    uavplan stage render   RUN_DIR  # plan/ + the scene -> images/, cameras.json
     uavplan stage sfm      RUN_DIR  # images/ -> recon/sparse/, gnss.json, database.db
     uavplan stage dense    RUN_DIR  # images/ + recon/sparse/ -> recon/dense.ply, recon/dense/
     uavplan stage evaluate RUN_DIR  # recon/dense.ply + the scene -> eval/ (scores, pictures)
@@ -29,15 +29,15 @@ from pipeline.settings import CellSettings, SettingsError, cell_settings
 from reconstruct.errors import ReconstructionError
 from reconstruct.pipeline import RECORD_FILE, SFM_RECORD_FILE, dense_flight, sfm_flight
 from render import render_flight
-from scene.plan import read_viewpoints
+from scene.plan import read_plan
 from scene.registry import load_scene
 
 IMAGES, RECON, EVAL = Path("images"), Path("recon"), Path("eval")
 
 
-def render_stage(settings: CellSettings, viewpoints_csv: Path, out_dir: Path) -> dict:
+def render_stage(settings: CellSettings, plan_dir: Path, out_dir: Path) -> dict:
     """The plan's views of the scene rendered into ``out_dir`` (images and ``cameras.json``)."""
-    viewpoints, kinds = read_viewpoints(viewpoints_csv)
+    viewpoints, kinds = read_plan(plan_dir)
     scene = load_scene(settings.scene, cache_dir=settings.cache_dir)
     rendered = render_flight(scene, viewpoints, settings.intrinsics, out_dir, settings.render, kinds=kinds)
     return {"n_images": len(viewpoints), "render_time_s": rendered.render_time_s, "image_dir": str(out_dir)}
@@ -63,14 +63,14 @@ def evaluate_stage(settings: CellSettings, cloud: Path, out_dir: Path) -> dict:
 
 # What each stage reads from the run directory and where it writes, relative to the output root.
 STAGES: dict[str, tuple[tuple[Path, ...], Path, Callable]] = {
-    "render": ((Path("plan/viewpoints.csv"),), IMAGES, render_stage),
+    "render": ((Path("plan"),), IMAGES, render_stage),
     "sfm": ((IMAGES,), RECON, sfm_stage),
     "dense": ((IMAGES, RECON / "sparse"), RECON, dense_stage),
     "evaluate": ((RECON / "dense.ply",), EVAL, evaluate_stage),
 }
 # Which stage writes each input, for the error that names it.
 MAKER = {
-    "plan/viewpoints.csv": "uavplan run",
+    "plan": "uavplan run",
     "images": "render",
     "recon/sparse": "sfm",
     "recon/dense.ply": "dense",

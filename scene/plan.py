@@ -2,13 +2,16 @@
 
 ``plan/viewpoints.csv`` (one row per viewpoint in flight order: ``index, x, y, z, yaw_deg,
 pitch_deg, kind``; world frame, metres and degrees, see ``scene.camera``) and ``plan/plan.json``
-(the planner's record) are what rendering, scoring and the mission exporters read.
+(the planner's record, and ``viewpoints`` as the planner made them: the CSV's 6 decimals are
+micrometres, yet a render from them differs from the cell's in a few per cent of its pixels) are
+what rendering, scoring and the mission exporters read (``read_plan``).
 """
 
 from __future__ import annotations
 
 import csv
 import io
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -72,9 +75,25 @@ def write_plan(plan: Plan, plan_dir: str | Path) -> Path:
         "flight_length_m": plan.flight_length_m,
         "kinds": {k: plan.kinds.count(k) for k in sorted(set(plan.kinds))},
         **plan.info,
+        "viewpoints": plan.viewpoints.tolist(),
     }
     write_json_atomic(plan_dir / "plan.json", record)
     return plan_dir
+
+
+def read_plan(plan_dir: str | Path) -> tuple[np.ndarray, list[str]]:
+    """A plan folder's views (V, 5) and kinds: ``viewpoints.csv``, at full precision where
+    ``plan.json`` holds the same views (a CSV edited by hand wins)."""
+    plan_dir = Path(plan_dir)
+    viewpoints, kinds = read_viewpoints(plan_dir / "viewpoints.csv")
+    record_path = plan_dir / "plan.json"
+    if record_path.is_file():
+        exact = json.loads(record_path.read_text()).get("viewpoints")
+        if exact is not None:
+            exact = np.asarray(exact, dtype=float)
+            if exact.shape == viewpoints.shape and np.allclose(exact, viewpoints, rtol=0.0, atol=6e-7):
+                return exact, kinds
+    return viewpoints, kinds
 
 
 def read_viewpoints(csv_path: str | Path) -> tuple[np.ndarray, list[str]]:

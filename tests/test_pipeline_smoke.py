@@ -157,3 +157,63 @@ def test_tables_from_the_sweep(smoke_sweep, tmp_path):
     table2 = pd.read_csv(tmp_path / "table2.csv").set_index(["planner", "metric"])
     for planner, r in records.items():
         assert table2.loc[(planner, "n_images"), "mean"] == r["n_images"]
+
+
+def _lawnmower_run(sweep_dir: Path) -> tuple[Path, dict]:
+    for path in sweep_dir.rglob("metrics.json"):
+        record = json.loads(path.read_text())
+        if record["planner"] == "lawnmower":
+            return path.parent, record
+    raise AssertionError("no lawnmower cell in the smoke sweep")
+
+
+def _stage(stage: str, run_dir: Path, out: Path, capsys) -> dict:
+    from pipeline.stages import main as stage_main
+
+    capsys.readouterr()
+    assert stage_main([stage, str(run_dir), "--out", str(out)]) == 0, capsys.readouterr().err
+    return json.loads(capsys.readouterr().out)
+
+
+def test_the_render_stage_command_reproduces_the_cells_images(smoke_sweep, tmp_path, capsys):
+    run_dir, record = _lawnmower_run(smoke_sweep[0])
+    again = _stage("render", run_dir, tmp_path, capsys)
+    assert again["n_images"] == record["n_images"]
+    kept = sorted(p.name for p in (run_dir / "images").glob("*.png"))
+    assert sorted(p.name for p in (tmp_path / "images").glob("*.png")) == kept
+    for name in kept:
+        assert (tmp_path / "images" / name).read_bytes() == (run_dir / "images" / name).read_bytes(), name
+    # cameras.json: the same cameras (its render timings are this run's)
+    cameras = [json.loads((d / "images" / "cameras.json").read_text()) for d in (tmp_path, run_dir)]
+    assert cameras[0]["images"] == cameras[1]["images"]
+    assert cameras[0]["intrinsics"] == cameras[1]["intrinsics"]
+
+
+def test_the_dense_and_evaluate_stage_commands_reproduce_the_cells_cloud_and_scores(
+    smoke_sweep, tmp_path, capsys
+):
+    """The dense stage on the cell's own aligned model and images: the same cloud, byte for byte
+    (the preset is deterministic); scored again: the same numbers."""
+    run_dir, record = _lawnmower_run(smoke_sweep[0])
+    dense = _stage("dense", run_dir, tmp_path, capsys)
+    assert dense["n_dense_points"] == record["n_dense_points"]
+    assert (tmp_path / "recon" / "dense.ply").read_bytes() == (run_dir / "recon" / "dense.ply").read_bytes()
+    scores = _stage("evaluate", run_dir, tmp_path, capsys)
+    for key in ("acc90_m", "acc95_m", "comp_050", "comp_075", "n_points"):
+        assert scores[key] == record[key], key
+
+
+@pytest.mark.slow  # SfM of the 70 images again: minutes on 2 cores
+def test_the_sfm_stage_command_reproduces_the_cells_aligned_model(smoke_sweep, tmp_path, capsys):
+    import numpy as np
+    import pycolmap
+
+    run_dir, record = _lawnmower_run(smoke_sweep[0])
+    sfm = _stage("sfm", run_dir, tmp_path, capsys)
+    for key in ("n_registered", "n_sparse_points", "position_error_median_m", "rotation_error_median_deg"):
+        assert sfm[key] == record[key], key
+    ours, theirs = (pycolmap.Reconstruction(d / "recon" / "sparse") for d in (tmp_path, run_dir))
+    centres = {ours.image(i).name: ours.image(i).projection_center() for i in ours.reg_image_ids()}
+    for image_id in theirs.reg_image_ids():
+        image = theirs.image(image_id)
+        np.testing.assert_array_equal(centres[image.name], image.projection_center())

@@ -47,3 +47,33 @@ def test_a_bad_override_is_refused_with_the_settings_line(tmp_path, capsys):
     assert main(["dense", str(run), "reconstruct.dense.num_partners"]) == 2
     assert "expected KEY=VALUE" in capsys.readouterr().err
     assert not (run / "recon").exists()
+
+
+def test_the_plan_folder_gives_the_render_stage_the_planners_own_floats(tmp_path):
+    """viewpoints.csv keeps 6 decimals; plan.json the views as planned, which ``read_plan`` returns
+    while they agree with the CSV; a CSV edited by hand is taken as it reads."""
+    import numpy as np
+
+    from scene.plan import Plan, read_plan, write_plan
+
+    rng = np.random.default_rng(0)
+    views = np.column_stack(
+        [
+            rng.uniform(-50, 50, (7, 2)),
+            rng.uniform(10, 40, 7),
+            rng.uniform(-180, 180, 7),
+            rng.uniform(-90, 0, 7),
+        ]
+    )
+    write_plan(Plan(views, ["detail"] * 7, "test"), tmp_path)
+    exact, kinds = read_plan(tmp_path)
+    assert np.array_equal(exact, views) and kinds == ["detail"] * 7
+    csv_path = tmp_path / "viewpoints.csv"
+    lines = csv_path.read_text().splitlines()
+    fields = lines[3].split(",")
+    fields[3] = f"{float(fields[3]) + 1.5:.6f}"  # view 2 one and a half metres higher
+    lines[3] = ",".join(fields)
+    csv_path.write_text("\n".join(lines) + "\n")
+    edited, _ = read_plan(tmp_path)
+    assert edited[2, 2] == round(views[2, 2] + 1.5, 6)
+    assert np.abs(edited - views).max() == np.abs(edited[2, 2] - views[2, 2])
