@@ -424,7 +424,7 @@ def test_every_refusals_fix_runs_as_printed(tmp_path):
     with pytest.raises(PhotoError) as info:
         camera_from_photos([no_altitude], "xmp")
     messages.append(str(info.value))
-    from pipeline.photo_survey import gate_refusal
+    from pipeline.photo_gate import gate_refusal
 
     messages.append(gate_refusal("camera centres a median 17.60 m from their GNSS fixes", 17.6, 2.0, 3.0))
     messages.append(gate_refusal("centres 18.12 m off; turned 6.2 deg", 18.12, 2.0, 3.0, 6.2, 5.0))
@@ -479,7 +479,7 @@ def test_origin_and_site_typed_with_bare_commas_become_lists_hydra_takes():
 
 
 def test_too_few_photos_registered_is_refused_with_the_settings_that_take_them():
-    from pipeline.photo_survey import registration_refusal
+    from pipeline.photo_gate import registration_refusal
     from reconstruct.errors import ReconstructionError
 
     exc = ReconstructionError(
