@@ -5,4 +5,5 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
 bash "$ROOT/scripts/setup.sh"
 cd "$ROOT"
 "$ROOT/.venv/bin/ruff" check .
+"$ROOT/.venv/bin/ruff" format --check .
 exec "$ROOT/.venv/bin/python" -m pytest -m "not slow" "$@"

@@ -65,9 +65,7 @@ def export_mission(
     if fmt not in FORMATS:
         raise MissionError(f"unknown mission format {fmt!r}; choose one of {sorted(FORMATS)}")
     module = FORMATS[fmt]
-    cap = min(
-        c for c in (drone.max_waypoints_per_file, module.MAX_WAYPOINTS, max_waypoints) if c is not None
-    )
+    cap = min(c for c in (drone.max_waypoints_per_file, module.MAX_WAYPOINTS, max_waypoints) if c is not None)
     mission = build_mission(viewpoints, origin, drone, max_waypoints=cap)
     contents = module.render(mission)
     paths = output_paths(Path(out), len(contents))

@@ -28,7 +28,6 @@ TEMPLATE_KML = "wpmz/template.kml"
 WAYLINES_WPML = "wpmz/waylines.wpml"
 
 
-
 def _register_namespaces() -> None:
     """KML as the default namespace and ``wpml:`` for DJI's, as DJI's controllers read them.
 
