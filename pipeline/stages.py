@@ -1,4 +1,4 @@
-"""One stage of a kept run directory, re-run on its files: ``uavplan stage STAGE RUN_DIR``.
+"""STAGE RUN_DIR: one stage of a kept run again, on its files (render, sfm, dense, evaluate).
 
     uavplan stage render   RUN_DIR  # plan/ + the scene -> images/, cameras.json
     uavplan stage sfm      RUN_DIR  # images/ -> recon/sparse/, gnss.json, database.db
@@ -121,7 +121,7 @@ def run_stage(stage: str, run_dir: Path, out_root: Path, overrides: Sequence[str
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("stage", choices=list(STAGES))
     parser.add_argument("run_dir", type=Path, help="a run directory of `uavplan run` (outputs/...)")
