@@ -39,6 +39,7 @@ from pipeline.forecast import predicted_coverage
 from pipeline.proxy import load_proxy
 from pipeline.settings import planner_setup
 from reconstruct.proxy import degraded_ground_truth
+from reconstruct.settings import ReconstructSettings
 from scene.camera import Intrinsics
 from scene.io import write_json_atomic
 from scene.registry import load_scene
@@ -101,7 +102,9 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         scene = load_scene(base.scene, cache_dir=base.cache_dir)
         if args.proxy is None:
-            proxy = degraded_ground_truth(scene, base.reconstruct, args.seed)
+            proxy = degraded_ground_truth(
+                scene, ReconstructSettings.from_config(base.reconstruct).proxy, args.seed
+            )
         else:
             try:
                 proxy = load_proxy(args.proxy)

@@ -36,6 +36,7 @@ from benchmarks import write_records
 from evaluate.__main__ import load_scene_by_name, load_settings
 from evaluate.run import evaluate_reconstruction
 from reconstruct.dense import dense_reconstruct, fuse_report
+from reconstruct.dense_settings import DenseSettings
 from reconstruct.flight import read_flight
 from reconstruct.stereo.depth_maps import reference_views, sparse_incidence
 from reconstruct.timing import stage_time
@@ -114,7 +115,7 @@ def run_variant(
     ]
     if unknown:
         raise ValueError(f"unknown dense settings {unknown}")
-    cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist(overrides))
+    settings = DenseSettings.from_config(OmegaConf.merge(cfg, OmegaConf.from_dotlist(overrides)))
     out_dir.mkdir(parents=True, exist_ok=True)
     sparse = run_dir / "recon" / "sparse"
     if true_poses:
@@ -125,7 +126,7 @@ def run_variant(
             maps = sorted(
                 p.name[: -len(DEPTH_SUFFIX)] for p in (workspace / "stereo" / "depth_maps").iterdir()
             )
-            fused = fuse_report(workspace, out_dir / "dense.ply", cfg, maps)
+            fused = fuse_report(workspace, out_dir / "dense.ply", settings, maps)
             dense = {
                 "n_depth_maps": len(maps),
                 "n_dense_points": fused.n_points,
@@ -133,7 +134,7 @@ def run_variant(
             }
         else:
             dense = dense_reconstruct(
-                sparse, run_dir / "images", out_dir, cfg, ground_truth=scene.ground_truth_mesh
+                sparse, run_dir / "images", out_dir, settings, ground_truth=scene.ground_truth_mesh
             )
     record = {
         "dense_time_s": clock.wall_s,

@@ -32,6 +32,7 @@ It needs only numpy, OpenCV, PyYAML and pycolmap, so it runs where omegaconf is 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import shutil
 import sys
@@ -46,6 +47,7 @@ from evaluate.__main__ import load_scene_by_name
 from evaluate.metrics import score_points
 from reconstruct.align import merge_model
 from reconstruct.dense import fuse
+from reconstruct.dense_settings import DenseSettings
 from reconstruct.stereo.depth_maps import compute_depth_maps_cpu, compute_depth_maps_cuda
 from reconstruct.workspace import prepare_workspace
 from render import render_flight
@@ -59,9 +61,9 @@ CONFIG = ROOT / "conf" / "reconstruct" / "default.yaml"
 MAX_PLY_POINTS = 1_250_000  # 12 bytes each: the PLY stays under 16 MB, to copy back
 
 
-def dense_cfg() -> dict:
-    """The default ``reconstruct.dense`` config (plain YAML: no interpolation in that file)."""
-    return yaml.safe_load(CONFIG.read_text())["dense"]
+def dense_settings() -> DenseSettings:
+    """The default ``reconstruct.dense`` settings (plain YAML: no interpolation in that file)."""
+    return DenseSettings.from_config(yaml.safe_load(CONFIG.read_text())["dense"])
 
 
 def subset_model(rec, image_ids):
@@ -91,7 +93,8 @@ def build_workspace(sparse: Path, images: Path, out: Path, num_images: int, seed
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
     subset_model(rec, chosen).write(_mkdir(out / "subset_sparse"))
-    ws = prepare_workspace(out / "subset_sparse", images, out / "ws", {"max_image_size": max_size})
+    settings = dataclasses.replace(dense_settings(), max_image_size=max_size)
+    ws = prepare_workspace(out / "subset_sparse", images, out / "ws", settings)
     # JPEG (quality 95) instead of PNG: a third of the size, so the workspace fits the carry budget.
     und = pycolmap.Reconstruction(ws / "sparse")
     for image in und.images.values():
@@ -155,19 +158,19 @@ def run_dense(workspace: Path, backend: str, out: Path, voxel: float) -> dict:
     # heavy (pycolmap): imported on use
     import pycolmap
 
-    cfg = dense_cfg()
+    settings = dense_settings()
     shutil.rmtree(workspace / "stereo" / "depth_maps", ignore_errors=True)
     shutil.rmtree(workspace / "stereo" / "normal_maps", ignore_errors=True)
     (workspace / "stereo" / "depth_maps").mkdir(parents=True)
     (workspace / "stereo" / "normal_maps").mkdir(parents=True)
     start = time.perf_counter()
     compute = compute_depth_maps_cuda if backend == "cuda" else compute_depth_maps_cpu
-    valid = compute(workspace, cfg)
+    valid = compute(workspace, settings)
     depth_time = time.perf_counter() - start
     names = [n for n, count in valid.items() if count > 0]
     start = time.perf_counter()
     fused_ply = workspace / f"fused_{backend}.ply"
-    n_fused = fuse(workspace, fused_ply, cfg, names)
+    n_fused = fuse(workspace, fused_ply, settings, names)
     fusion_time = time.perf_counter() - start
     points = read_ply_xyz(fused_ply)
     written = points if len(points) <= MAX_PLY_POINTS else voxel_mean(points, voxel)

@@ -17,6 +17,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from reconstruct.dense import _fuse_atomic
+from reconstruct.dense_settings import DenseSettings
 from reconstruct.workspace import DEPTH_SUFFIX
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -37,9 +38,10 @@ def main(argv: list[str] | None = None) -> int:
     cfg = OmegaConf.load(ROOT / "conf" / "reconstruct" / "default.yaml").dense
     if args.max_memory_gb is not None:
         cfg.fusion.max_memory_gb = args.max_memory_gb
+    settings = DenseSettings.from_config(cfg)
     wall, cpu = time.perf_counter(), time.process_time()
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    n_points = _fuse_atomic(args.workspace, args.out, cfg, names, deterministic=False).n_points
+    n_points = _fuse_atomic(args.workspace, args.out, settings, names, deterministic=False).n_points
     peak_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
     print(
         f"fusion: {n_points} points from {len(names)} views in {time.perf_counter() - wall:.1f} s wall, "

@@ -29,6 +29,7 @@ from planner.ours.ours_settings import detail_params
 from planner.sampling import sample_surface
 from planner.visibility import VisibilityLimits, VisibilityModel
 from reconstruct.proxy import degraded_ground_truth
+from reconstruct.settings import ReconstructSettings
 from scene.camera import Intrinsics
 from scene.io import write_json_atomic
 from scene.registry import load_scene
@@ -46,7 +47,7 @@ def _proxy(scene_name: str, seed: int, cache_dir: str):
     scene_cfg = OmegaConf.create({"seed": seed, "scene": raw})  # resolves ${seed}
     scene = load_scene(OmegaConf.to_container(scene_cfg, resolve=True)["scene"], cache_dir=cache_dir)
     recon_cfg = _load_yaml(ROOT / "conf" / "reconstruct" / "default.yaml")
-    return degraded_ground_truth(scene, recon_cfg, seed)
+    return degraded_ground_truth(scene, ReconstructSettings.from_config(recon_cfg).proxy, seed)
 
 
 def _set(params: dict, assignment: str) -> None:

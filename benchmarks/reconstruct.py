@@ -36,6 +36,7 @@ from omegaconf import OmegaConf
 
 from planner.lawnmower.lawnmower import plan_exploration
 from reconstruct.pipeline import build_proxy, reconstruct_flight
+from reconstruct.settings import ReconstructSettings
 from render.flight import render_flight
 from scene.camera import Intrinsics
 from scene.cameras_file import CAMERAS_FILE, read_cameras, write_cameras
@@ -106,10 +107,10 @@ def run_one(image_dir: Path, out_dir: Path, mode: str = "default", settings: str
     cfg.keep_dense_workspace = False  # a cell's setting in the study; the bench keeps only records
     start, cpu_start = time.perf_counter(), time.process_time()
     if settings == "scored":
-        record = reconstruct_flight(image_dir, out_dir, cfg, seed=0)
+        record = reconstruct_flight(image_dir, out_dir, ReconstructSettings.from_config(cfg), seed=0)
         record["proxy_time_s"] = 0.0
     else:
-        _, record = build_proxy(image_dir, out_dir, cfg, seed=0)
+        _, record = build_proxy(image_dir, out_dir, ReconstructSettings.from_config(cfg), seed=0)
     record["total_time_s"] = time.perf_counter() - start
     record["cpu_time_s"] = time.process_time() - cpu_start
     record["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6

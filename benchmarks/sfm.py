@@ -32,7 +32,9 @@ from benchmarks import write_records
 from benchmarks.dense import parse_variant
 from reconstruct.align import georeference_models, pose_errors
 from reconstruct.flight import read_flight, simulate_gnss
+from reconstruct.settings import ReconstructSettings
 from reconstruct.sfm import SfmResult, check_pairs, map_reconstruction, run_sfm, sfm_options
+from reconstruct.sfm_settings import SfmSettings
 from reconstruct.timing import stage_time
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -49,7 +51,7 @@ def map_database(database: Path, flight, gnss, out_dir: Path, sfm_cfg, seed: int
     out_dir.mkdir(parents=True, exist_ok=True)
     copy = out_dir / "database.db"
     shutil.copyfile(database, copy)
-    options = sfm_options(sfm_cfg, seed)
+    options = sfm_options(SfmSettings.from_config(sfm_cfg), seed)
     pycolmap.set_random_seed(int(seed))
     with stage_time() as check:
         n_rejected = check_pairs(copy, flight, gnss, options, seed)
@@ -71,14 +73,15 @@ def run_variant(
     if unknown:
         raise ValueError(f"unknown sfm settings {unknown}")
     sfm_cfg = OmegaConf.merge(cfg.sfm, OmegaConf.from_dotlist(overrides))
+    align = ReconstructSettings.from_config(cfg).align
     flight = read_flight(image_dir)
     sigma = float(cfg.gnss.sigma_m)
     gnss = simulate_gnss(flight.positions, sigma, seed)
     if database is None:
-        sfm = run_sfm(flight, out_dir, gnss, sigma, sfm_cfg, seed)
+        sfm = run_sfm(flight, out_dir, gnss, sigma, SfmSettings.from_config(sfm_cfg), seed)
     else:
         sfm = map_database(database, flight, gnss, out_dir, sfm_cfg, seed)
-    model, merged = georeference_models(sfm.models, flight.names, gnss, sigma, cfg.align, seed)
+    model, merged = georeference_models(sfm.models, flight.names, gnss, sigma, align, seed)
     record = {f"{s}_time_s": sfm.times_s[s] for s in STAGES} | {f"{s}_cpu_s": sfm.cpu_s[s] for s in STAGES}
     record |= {
         "n_image_pairs": sfm.n_image_pairs,

@@ -37,6 +37,7 @@ from omegaconf import OmegaConf
 
 from experiments.observations import GT_REGION_FILE, SPARSE_DIR
 from experiments.runs import RunDirectoryError, read_run_config, tool_parser
+from reconstruct.dense_settings import DenseSettings
 from reconstruct.stereo.matching import consistent_depth, pair_depth, partner_weights
 from reconstruct.workspace import View, prepare_workspace, read_views, select_partners, sparse_points_by_image
 from scene.enclosure import raycasting_scene
@@ -140,12 +141,15 @@ def analyse_run(
     for needed in (SPARSE_DIR, IMAGES_DIR, GT_REGION_FILE):
         if not (run_dir / needed).exists():
             raise RunDirectoryError(f"{run_dir}: missing {needed}")
-    dense_cfg = cfg.reconstruct.dense
-    if str(dense_cfg.backend) == "cuda":
+    try:
+        dense = DenseSettings.from_config(cfg.reconstruct.dense)
+    except ValueError as exc:
+        raise RunDirectoryError(f"{run_dir}: {exc}") from exc
+    if dense.backend == "cuda":
         raise RunDirectoryError(f"{run_dir}: ran the CUDA back-end; this compares the CPU back-end's pairs")
-    workspace = prepare_workspace(run_dir / SPARSE_DIR, run_dir / IMAGES_DIR, workdir / "dense", dense_cfg)
+    workspace = prepare_workspace(run_dir / SPARSE_DIR, run_dir / IMAGES_DIR, workdir / "dense", dense)
     views = read_views(workspace)
-    partners = select_partners(workspace, views, dense_cfg)
+    partners = select_partners(workspace, views, dense)
     points_by_name = sparse_points_by_image(workspace)
     gt_mesh = trimesh.load(run_dir / GT_REGION_FILE, process=False, force="mesh")
     scene = raycasting_scene(gt_mesh)
@@ -174,7 +178,7 @@ def analyse_run(
             seen = seen_by(points, has_gt, src, ground_truth_depth(scene, src)[0])
             seen_any |= seen
             src_gray = cv2.imread(str(workspace / "images" / src_name), cv2.IMREAD_GRAYSCALE)
-            depth = pair_depth(ref, src, ref_gray, src_gray, ref_points, dense_cfg)
+            depth = pair_depth(ref, src, ref_gray, src_gray, ref_points, dense)
             row = base | {
                 "partner": src_name,
                 "baseline_m": float(np.linalg.norm(src.center - ref.center)),
@@ -192,9 +196,9 @@ def analyse_run(
         if depths:
             combined = consistent_depth(
                 np.stack(depths),
-                int(dense_cfg.min_consistent_partners),
-                float(dense_cfg.consistency_rel_tol),
-                partner_weights(ref, measured, dense_cfg),
+                dense.min_consistent_partners,
+                dense.consistency_rel_tol,
+                partner_weights(ref, measured, dense),
             )
             rows.append(
                 base

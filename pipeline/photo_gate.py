@@ -20,6 +20,7 @@ from reconstruct.align import pose_errors
 from reconstruct.errors import ReconstructionError
 from reconstruct.flight import read_flight
 from reconstruct.pipeline import build_proxy
+from reconstruct.settings import ReconstructSettings
 
 log = logging.getLogger("plan_photos")
 
@@ -69,7 +70,8 @@ def reconstruct_with_gate(image_dir, run_dir, recon_cfg, seed, roi, photos_cfg, 
         out = run_dir / ("recon" if attempt == 0 else f"recon_{method}")
         try:
             with progress("reconstruction"):
-                mesh, recon = build_proxy(image_dir, out, cfg_try, seed, roi=roi, sparse_check=gate)
+                settings = ReconstructSettings.from_config(cfg_try)
+                mesh, recon = build_proxy(image_dir, out, settings, seed, roi=roi, sparse_check=gate)
         except ReconstructionError as exc:
             if exc.record.get("stage") != "sanity":
                 raise registration_refusal(exc, recon_cfg) from exc

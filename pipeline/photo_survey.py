@@ -54,7 +54,7 @@ from pipeline.settings import SettingsError, check_planner, planner_setup
 from reconstruct.dense_settings import DenseSettings
 from reconstruct.flight import read_flight
 from reconstruct.proxy import oriented_cloud
-from reconstruct.sfm_settings import SfmSettings
+from reconstruct.settings import ReconstructSettings
 from reconstruct.timing import cpu_seconds
 from scene.base import Box
 from scene.camera import Intrinsics
@@ -186,8 +186,8 @@ def _read_flight(job: _JobSettings, run_dir: Path) -> _PhotoFlight:
     recon_cfg, used = photo_reconstruct_config(
         job.reconstruct, photos_cfg, report.records, local_viewpoints(report.records, origin)
     )
-    try:
-        SfmSettings.from_config(recon_cfg["sfm"])
+    try:  # every value resolved: the whole group checked before the reconstruction
+        ReconstructSettings.from_config(recon_cfg)
     except ValueError as exc:
         raise SettingsError(str(exc)) from exc
     used["origin"] = {

@@ -23,8 +23,9 @@ from pipeline.cache import cache_key, cached_entry
 from pipeline.proxy_bundle import CLOUD_FILE, MANIFEST, find_bundle, install_bundle, load_cloud, sha256
 from planner.lawnmower.lawnmower import plan_exploration
 from reconstruct.cache_keys import proxy_settings
-from reconstruct.pipeline import build_proxy, proxy_flight_config
+from reconstruct.pipeline import build_proxy
 from reconstruct.proxy import degraded_ground_truth, oriented_cloud
+from reconstruct.settings import ReconstructSettings
 from render import render_flight
 from scene.base import Box, Scene
 from scene.camera import Intrinsics
@@ -38,7 +39,6 @@ PROXY_FILE = "proxy.ply"
 # Voxel (m) of the exploratory cloud handed to the planners with the proxy: ~100 points per m^2.
 CLOUD_VOXEL_M = 0.1
 WORKDIR_REUSE_FLAGS = ("cached", "proxy_cached")
-PROXY_SOURCES = ("reconstruction", "ground_truth_degraded")
 
 
 @dataclass(frozen=True)
@@ -46,9 +46,9 @@ class ProxyInputs:
     """The config groups the proxy stage reads (all but ``cache_dir`` key its cache entry).
 
     Attributes:
-        scene, camera, exploration, render, reconstruct: the ``scene``, ``camera``,
-            ``exploration`` (the exploratory flight), ``render`` and ``reconstruct`` groups (its
-            ``proxy`` block meshes the proxy).
+        scene, camera, exploration, render: the ``scene``, ``camera``, ``exploration`` (the
+            exploratory flight) and ``render`` groups.
+        reconstruct: the ``reconstruct`` settings, typed (its ``proxy`` block meshes the proxy).
         cache_dir: the stage cache root.
         seed: seed of the reconstruction (GNSS noise, RANSAC, mapper).
     """
@@ -57,7 +57,7 @@ class ProxyInputs:
     camera: Mapping
     exploration: Mapping
     render: Mapping
-    reconstruct: Mapping
+    reconstruct: ReconstructSettings
     cache_dir: str
     seed: int
 
@@ -69,7 +69,7 @@ class ProxyInputs:
             cfg["camera"],
             cfg["exploration"],
             cfg["render"],
-            cfg["reconstruct"],
+            ReconstructSettings.from_config(cfg["reconstruct"]),
             str(cfg["cache_dir"]),
             int(cfg["seed"]),
         )
@@ -84,7 +84,7 @@ def exploration_cache_key(scene: Scene, inputs: ProxyInputs, for_bundle: bool = 
     deterministic mode (a committed proxy is one fixed mesh, whichever mode the cell then
     reconstructs its own flight in: the noise floor's cells plan on the study's proxy) and without
     a mesh scene's path (another checkout's is another path to the same mesh)."""
-    settings = proxy_settings(proxy_flight_config(inputs.reconstruct))
+    settings = proxy_settings(inputs.reconstruct.for_exploration().node)
     scene_settings = plain(inputs.scene)
     if for_bundle:
         settings.pop("deterministic", None)
@@ -189,12 +189,9 @@ def proxy_stage(scene: Scene, intrinsics: Intrinsics, inputs: ProxyInputs) -> tu
         (proxy mesh in world metres, the ``proxy_*`` fields of ``metrics.json``: ``proxy_source``,
         and for a reconstruction the exploration's record, ``proxy_entry`` among them).
     """
-    source = inputs.reconstruct["proxy"]["source"]
-    if source == "ground_truth_degraded":
-        proxy = degraded_ground_truth(scene, inputs.reconstruct, int(inputs.seed))
+    if inputs.reconstruct.proxy.source == "ground_truth_degraded":
+        proxy = degraded_ground_truth(scene, inputs.reconstruct.proxy, int(inputs.seed))
         return proxy, {"proxy_source": "ground_truth_degraded (NOT the paper's setting)"}
-    if source != "reconstruction":
-        raise ValueError(f"reconstruct.proxy.source must be one of {PROXY_SOURCES}, got {source!r}")
     entry, record = build_exploration_proxy(scene, intrinsics, inputs)
     fields = {f"proxy_{k}": v for k, v in record.items() if isinstance(v, int | float | str | bool)}
     proxy = load_proxy(entry)

@@ -23,7 +23,6 @@ from pipeline.proxy import ProxyInputs
 from planner.budget import DEFAULT_LEVEL, apply_budget
 from reconstruct.cache_keys import flight_fusion_bytes
 from reconstruct.dense_settings import DenseSettings
-from reconstruct.pipeline import proxy_flight_config
 from reconstruct.settings import ReconstructSettings
 from render.flight import RenderSettings
 from scene.camera import Intrinsics
@@ -136,16 +135,17 @@ def check_planner(target: str, params, intrinsics: Intrinsics) -> None:
         check(params, intrinsics)
 
 
-def check_fusion_memory(dense: DenseSettings, camera: dict) -> None:
+def check_fusion_memory(dense: DenseSettings, camera: Intrinsics) -> None:
     """Refuse a fusion memory budget that cannot hold two of the flight's views (fusion's least)."""
     budget = dense.fusion.max_memory_gb
     if budget is None or isinstance(budget, str):
         return
-    two_views_gb = flight_fusion_bytes(2, camera, {"max_image_size": dense.max_image_size}) / 1e9
+    size = {"width": camera.width, "height": camera.height}
+    two_views_gb = flight_fusion_bytes(2, size, {"max_image_size": dense.max_image_size}) / 1e9
     if budget < two_views_gb:
         raise ValueError(
             f"reconstruct.dense.fusion.max_memory_gb={budget:g} holds fewer than two views of "
-            f"{camera['width']}x{camera['height']} images: at least {two_views_gb:.3f} GB"
+            f"{camera.width}x{camera.height} images: at least {two_views_gb:.3f} GB"
         )
 
 
@@ -169,10 +169,8 @@ def cell_settings(cfg: DictConfig) -> CellSettings:
             raise ValueError(f"survey.flight_order must be one of {FLIGHT_ORDERS}, got {order!r}")
         # The reconstruction before the planner: ours' budget prune reads the dense stage's partner
         # test (planner.budget_partners), so a bad value is named where the user set it.
-        reconstruct = ReconstructSettings.build(
-            cfg.reconstruct, proxy_flight_config(cfg.reconstruct)["dense"]
-        )
-        check_fusion_memory(reconstruct.dense, plain(cfg.camera))
+        reconstruct = ReconstructSettings.from_config(cfg.reconstruct)
+        check_fusion_memory(reconstruct.dense, intrinsics)
         params, budget = planner_setup(cfg)
         target = str(cfg.planner._target_)
         check_planner(target, params, intrinsics)
@@ -187,7 +185,7 @@ def cell_settings(cfg: DictConfig) -> CellSettings:
         detached(cfg.camera),
         detached(cfg.exploration),
         detached(cfg.render),
-        reconstruct.node,
+        reconstruct,
         str(cfg.cache_dir),
         seed,
     )

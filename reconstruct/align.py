@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
 
 import numpy as np
 import pycolmap
 
 from reconstruct.errors import ReconstructionError
 from reconstruct.flight import Flight
+from reconstruct.settings import AlignSettings
 
 log = logging.getLogger(__name__)
 
@@ -19,7 +19,7 @@ def align_to_gnss(
     names,
     gnss_positions: np.ndarray,
     gnss_sigma_m: float,
-    cfg: Mapping,
+    settings: AlignSettings,
     seed: int = 0,
 ) -> pycolmap.Sim3d:
     """Robustly fit the similarity world_from_model to the GNSS positions and apply it in place.
@@ -32,7 +32,7 @@ def align_to_gnss(
         names: image names, one per row of ``gnss_positions``.
         gnss_positions: (N, 3) GNSS camera positions in metres.
         gnss_sigma_m: GNSS noise standard deviation in metres.
-        cfg: the ``reconstruct.align`` config.
+        settings: ``reconstruct.align``, typed.
         seed: RANSAC seed.
 
     Returns:
@@ -41,7 +41,7 @@ def align_to_gnss(
     position_by_name = {str(n): np.asarray(p, float) for n, p in zip(names, gnss_positions, strict=True)}
     reg_names = [reconstruction.image(i).name for i in reconstruction.reg_image_ids()]
     reg_names = [n for n in reg_names if n in position_by_name]
-    min_common = int(cfg["min_common_images"])
+    min_common = settings.min_common_images
     if len(reg_names) < max(min_common, 3):
         raise ReconstructionError(
             f"only {len(reg_names)} registered images have GNSS positions; "
@@ -49,7 +49,7 @@ def align_to_gnss(
             {"stage": "align"},
         )
     ransac = pycolmap.RANSACOptions()
-    ransac.max_error = max(float(cfg["max_error_sigmas"]) * float(gnss_sigma_m), float(cfg["min_error_m"]))
+    ransac.max_error = max(settings.max_error_sigmas * float(gnss_sigma_m), settings.min_error_m)
     ransac.random_seed = int(seed)
     locations = np.array([position_by_name[n] for n in reg_names])
     world_from_model = pycolmap.align_reconstruction_to_locations(
@@ -158,7 +158,7 @@ def georeference_models(
     names,
     gnss_positions: np.ndarray,
     gnss_sigma_m: float,
-    cfg: Mapping,
+    settings: AlignSettings,
     seed: int = 0,
 ) -> tuple[pycolmap.Reconstruction, dict]:
     """Align every model SfM found to its own GNSS positions and merge them into the largest.
@@ -176,10 +176,10 @@ def georeference_models(
     """
     if not models:
         raise ReconstructionError("no model to georeference", {"stage": "align"})
-    max_error = max(float(cfg["deregister_error_sigmas"]) * gnss_sigma_m, float(cfg["min_error_m"]))
-    min_images = max(int(cfg["merge_min_images"]), int(cfg["min_common_images"]), 3)
+    max_error = max(settings.deregister_error_sigmas * gnss_sigma_m, settings.min_error_m)
+    min_images = max(settings.merge_min_images, settings.min_common_images, 3)
     target = models[0]
-    align_to_gnss(target, names, gnss_positions, gnss_sigma_m, cfg, seed)
+    align_to_gnss(target, names, gnss_positions, gnss_sigma_m, settings, seed)
     outliers = deregister_gnss_outliers(target, names, gnss_positions, max_error)
     report = {
         "n_models": len(models),
@@ -197,7 +197,7 @@ def georeference_models(
             reason = f"{size} images < align.merge_min_images {min_images}"
         else:
             try:
-                align_to_gnss(model, names, gnss_positions, gnss_sigma_m, cfg, seed)
+                align_to_gnss(model, names, gnss_positions, gnss_sigma_m, settings, seed)
             except ReconstructionError as exc:
                 reason = f"alignment failed ({exc})"
         if reason is None:

@@ -19,6 +19,7 @@ shifted by half a pixel when the intrinsic matrices are built.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import shutil
 import time
@@ -32,7 +33,7 @@ import pycolmap
 from tqdm import tqdm
 
 from reconstruct import fusion_chunks as fc
-from reconstruct.dense_settings import BACKENDS, DenseSettings
+from reconstruct.dense_settings import BACKENDS, DenseSettings, FusionSettings
 from reconstruct.fusion_chunks import read_visibility
 from reconstruct.fusion_rays import best_conditioned_per_voxel, fuse_along_rays, well_conditioned
 from reconstruct.fusion_support import supported_points
@@ -69,17 +70,17 @@ def select_backend(requested: str) -> str:
     return requested
 
 
-def fusion_options(cfg: Mapping, deterministic: bool = False) -> pycolmap.StereoFusionOptions:
-    """COLMAP's fusion options from the ``reconstruct.dense`` config."""
-    fcfg = cfg["fusion"]
+def fusion_options(settings: DenseSettings, deterministic: bool = False) -> pycolmap.StereoFusionOptions:
+    """COLMAP's fusion options from the dense settings (``fusion`` and ``max_image_size``, px)."""
+    fusion = settings.fusion
     options = pycolmap.StereoFusionOptions()
-    options.min_num_pixels = int(fcfg["min_num_pixels"])
-    options.max_reproj_error = float(fcfg["max_reproj_error"])
-    options.max_depth_error = float(fcfg["max_depth_error"])
-    options.max_normal_error = float(fcfg["max_normal_error"])
-    options.max_image_size = int(cfg["max_image_size"])
-    if fcfg.get("check_num_images") is not None:  # COLMAP's default (50) unless set
-        options.check_num_images = int(fcfg["check_num_images"])
+    options.min_num_pixels = fusion.min_num_pixels
+    options.max_reproj_error = fusion.max_reproj_error
+    options.max_depth_error = fusion.max_depth_error
+    options.max_normal_error = fusion.max_normal_error
+    options.max_image_size = settings.max_image_size
+    if fusion.check_num_images is not None:  # COLMAP's default (50) unless set
+        options.check_num_images = fusion.check_num_images
     if deterministic:
         options.num_threads = 1
     return options
@@ -134,14 +135,16 @@ class FusionReport:
     max_memory_gb: float | None
 
 
-def fuse(workspace: Path, output_ply: Path, cfg: Mapping, names, deterministic: bool = False) -> int:
+def fuse(
+    workspace: Path, output_ply: Path, settings: DenseSettings, names, deterministic: bool = False
+) -> int:
     """Fuse the workspace's geometric depth/normal maps of ``names`` into ``output_ply``; return the
     number of fused points (``fuse_report`` says how it ran)."""
-    return fuse_report(workspace, output_ply, cfg, names, deterministic).n_points
+    return fuse_report(workspace, output_ply, settings, names, deterministic).n_points
 
 
 def fuse_report(
-    workspace: Path, output_ply: Path, cfg: Mapping, names, deterministic: bool = False
+    workspace: Path, output_ply: Path, settings: DenseSettings, names, deterministic: bool = False
 ) -> FusionReport:
     """Fuse the workspace's geometric depth/normal maps of ``names`` into ``output_ply``. The PLY
     carries positions, normals and colours (model frame, metres).
@@ -153,18 +156,20 @@ def fuse_report(
     """
     workspace = Path(workspace)
     names = sorted(names)
-    if cfg["fusion"].get("method", "colmap") == "rays":
-        return FusionReport(_fuse_rays(workspace, output_ply, cfg, names), 1, None)
-    budget = fusion_budget_gb(cfg["fusion"].get("max_memory_gb"))
+    if settings.fusion.method == "rays":
+        return FusionReport(_fuse_rays(workspace, output_ply, settings, names), 1, None)
+    budget = fusion_budget_gb(settings.fusion.max_memory_gb)
     max_views = fusion_chunk_size(workspace, names, budget)
     if max_views is None:
-        n_points = _fuse_views(workspace, output_ply, cfg, names, deterministic)
-        return FusionReport(_support_filtered(output_ply, cfg, n_points), 1, budget)
-    n_points, n_chunks = _fuse_in_chunks(workspace, output_ply, cfg, names, max_views, deterministic)
+        n_points = _fuse_views(workspace, output_ply, settings, names, deterministic)
+        return FusionReport(_support_filtered(output_ply, settings.fusion, n_points), 1, budget)
+    n_points, n_chunks = _fuse_in_chunks(workspace, output_ply, settings, names, max_views, deterministic)
     return FusionReport(n_points, n_chunks, budget)
 
 
-def _fuse_views(workspace: Path, output_ply: Path, cfg: Mapping, names, deterministic: bool) -> int:
+def _fuse_views(
+    workspace: Path, output_ply: Path, settings: DenseSettings, names, deterministic: bool
+) -> int:
     """One COLMAP fusion of ``names`` (all held in memory at once) into ``output_ply``."""
     write_text_atomic(workspace / "stereo" / "fusion.cfg", "".join(f"{n}\n" for n in sorted(names)))
     fused = pycolmap.stereo_fusion(
@@ -172,14 +177,19 @@ def _fuse_views(workspace: Path, output_ply: Path, cfg: Mapping, names, determin
         workspace,
         workspace_format="COLMAP",
         input_type="geometric",
-        options=fusion_options(cfg, deterministic),
+        options=fusion_options(settings, deterministic),
         output_type="PLY",
     )
     return int(fused.num_points3D()) if hasattr(fused, "num_points3D") else -1
 
 
 def _fuse_in_chunks(
-    workspace: Path, output_ply: Path, cfg: Mapping, names: list[str], max_views: int, deterministic: bool
+    workspace: Path,
+    output_ply: Path,
+    settings: DenseSettings,
+    names: list[str],
+    max_views: int,
+    deterministic: bool,
 ) -> tuple[int, int]:
     # heavy (open3d): imported on use
     import open3d as o3d
@@ -187,7 +197,7 @@ def _fuse_in_chunks(
     sparse_dir = workspace / "sparse"
     # COLMAP's fusion walks from a view to its check_num_images most overlapping ones: a chunk
     # holds them for each of its own views.
-    per_view = fusion_options(cfg, deterministic).check_num_images
+    per_view = fusion_options(settings, deterministic).check_num_images
     neighbours = fc.top_neighbours(fc.shared_points(sparse_dir, names), per_view)
     chunks = fc.plan_chunks(neighbours, max_views)
     log.info(
@@ -206,7 +216,7 @@ def _fuse_in_chunks(
     chunk_vis = chunk_ply.with_name(chunk_ply.name + ".vis")
     try:
         for c, chunk in enumerate(tqdm(chunks, desc="fusion", unit="chunk")):
-            _fuse_views(workspace, chunk_ply, cfg, [names[v] for v in chunk.views], deterministic)
+            _fuse_views(workspace, chunk_ply, settings, [names[v] for v in chunk.views], deterministic)
             counts, indices = fc.read_visibility(chunk_vis)
             cloud = o3d.io.read_point_cloud(str(chunk_ply))
             if len(cloud.points) != len(counts) or (chunk_of[indices] < 0).any():
@@ -220,23 +230,21 @@ def _fuse_in_chunks(
         chunk_ply.unlink(missing_ok=True)
         chunk_vis.unlink(missing_ok=True)
     arrays = {key: np.concatenate(value) for key, value in parts.items()}
-    n_points = _write_cloud(output_ply, arrays, _support_kept(arrays, cfg))
+    n_points = _write_cloud(output_ply, arrays, _support_kept(arrays, settings.fusion))
     return n_points, len(chunks)
 
 
-def _fuse_rays(workspace: Path, output_ply: Path, cfg: Mapping, names: list[str]) -> int:
+def _fuse_rays(workspace: Path, output_ply: Path, settings: DenseSettings, names: list[str]) -> int:
     """``fusion.method: rays`` (``reconstruct.fusion_rays``): points on the depth maps' rays."""
+    fusion = settings.fusion
     views = read_views(workspace)
-    partners = select_partners(workspace, views, cfg)
-    baselines = stereo_baselines(views, partners, cfg.get("partner_weights", "equal"))
-    cloud = fuse_along_rays(workspace, names, views, overlapping_views(workspace), baselines, cfg["fusion"])
+    partners = select_partners(workspace, views, settings)
+    baselines = stereo_baselines(views, partners, settings.partner_weights)
+    cloud = fuse_along_rays(workspace, names, views, overlapping_views(workspace), baselines, fusion)
     n_fused = len(cloud["points"])
-    fusion = cfg["fusion"]
-    cloud = well_conditioned(
-        cloud, float(fusion.get("conditioning_cell_m", 0.05)), float(fusion.get("conditioning_ratio", 0.0))
-    )
+    cloud = well_conditioned(cloud, fusion.conditioning_cell_m, fusion.conditioning_ratio)
     n_conditioned = len(cloud["points"])
-    cloud = best_conditioned_per_voxel(cloud, float(fusion.get("ray_voxel_m", 0.0)))
+    cloud = best_conditioned_per_voxel(cloud, fusion.ray_voxel_m)
     log.info(
         "fusion along rays: %d points from %d views (%d after the conditioning filter, %d one per voxel)",
         n_fused,
@@ -244,18 +252,17 @@ def _fuse_rays(workspace: Path, output_ply: Path, cfg: Mapping, names: list[str]
         n_conditioned,
         len(cloud["points"]),
     )
-    return _write_cloud(output_ply, cloud, _support_kept(cloud, cfg))
+    return _write_cloud(output_ply, cloud, _support_kept(cloud, fusion))
 
 
-def _support_kept(cloud: Mapping, cfg: Mapping) -> np.ndarray | None:
-    """The fused points the support filter keeps (``reconstruct.fusion_support``); None when it is off."""
-    share = float(cfg["fusion"].get("support_share", 0.0))
+def _support_kept(cloud: Mapping, fusion: FusionSettings) -> np.ndarray | None:
+    """The fused points the support filter keeps (``reconstruct.fusion_support``: ``support_share``
+    of the best support within ``support_radius_m``, m); None when it is off."""
+    share = fusion.support_share
     if share <= 0:
         return None
 
-    keep = supported_points(
-        cloud["points"], cloud["support"], float(cfg["fusion"]["support_radius_m"]), share
-    )
+    keep = supported_points(cloud["points"], cloud["support"], fusion.support_radius_m, share)
     log.info("fusion: the support filter keeps %d of %d points", int(keep.sum()), len(keep))
     return keep
 
@@ -291,9 +298,9 @@ def _write_cloud(path: Path, cloud: Mapping, keep: np.ndarray | None) -> int:
     return len(out.points)
 
 
-def _support_filtered(output_ply: Path, cfg: Mapping, n_points: int) -> int:
+def _support_filtered(output_ply: Path, fusion: FusionSettings, n_points: int) -> int:
     """Apply the support filter to a one-pass fusion's PLY (and its ``.vis``) in place."""
-    if float(cfg["fusion"].get("support_share", 0.0)) <= 0 or n_points <= 0:
+    if fusion.support_share <= 0 or n_points <= 0:
         return n_points
     # Imported here: the CUDA back-end's machine needs only numpy, OpenCV and pycolmap.
     import open3d as o3d
@@ -306,14 +313,14 @@ def _support_filtered(output_ply: Path, cfg: Mapping, n_points: int) -> int:
         "colors": np.asarray(cloud.colors),
         "support": counts,
     }
-    return _write_cloud(output_ply, arrays, _support_kept(arrays, cfg))
+    return _write_cloud(output_ply, arrays, _support_kept(arrays, fusion))
 
 
 def dense_reconstruct(
     sparse_dir: Path,
     image_dir: Path,
     out_dir: Path,
-    cfg: Mapping,
+    settings: DenseSettings,
     deterministic: bool = False,
     ground_truth=None,
     seed: int = 0,
@@ -324,7 +331,7 @@ def dense_reconstruct(
         sparse_dir: the (aligned) sparse model.
         image_dir: the flight's images.
         out_dir: where ``dense/`` (the workspace) and ``dense.ply`` go.
-        cfg: the ``reconstruct.dense`` config.
+        settings: the ``reconstruct.dense`` settings (``DenseSettings.from_config``).
         deterministic: the same cloud, bit for bit, from the same model and images (see ``fuse``).
         ground_truth: the ground-truth mesh (world metres), for the ``oracle`` back-end only.
         seed: seeds the oracle's noise.
@@ -334,9 +341,14 @@ def dense_reconstruct(
         ``fusion_n_chunks``, ``fusion_max_memory_gb`` (the budget fusion ran under, or None).
 
     Raises:
-        ValueError: a bad setting, or the oracle asked for without a ground truth.
+        TypeError: ``settings`` is not a ``DenseSettings`` (a raw config mapping, say).
+        ValueError: the oracle asked for without a ground truth, or CUDA without a CUDA pycolmap.
     """
-    settings = DenseSettings.from_config(cfg)  # a bad setting is refused before the workspace is touched
+    if not isinstance(settings, DenseSettings):
+        raise TypeError(
+            "dense_reconstruct takes a DenseSettings (DenseSettings.from_config(mapping) builds one "
+            f"from the reconstruct.dense config), got {type(settings).__name__}"
+        )
     backend = select_backend(settings.backend)
     if backend == "oracle" and ground_truth is None:
         raise ValueError(
@@ -347,21 +359,21 @@ def dense_reconstruct(
         Path(sparse_dir),
         Path(image_dir),
         Path(out_dir) / "dense",
-        cfg,
+        settings,
         downscale_first=settings.downscale_before_undistorting,
     )
     log.info("dense: %s back-end", backend)
     if backend == "cuda":
-        valid = compute_depth_maps_cuda(workspace, cfg)
+        valid = compute_depth_maps_cuda(workspace, settings)
     elif backend == "oracle":
-        valid = compute_depth_maps_oracle(workspace, cfg, ground_truth, seed)
+        valid = compute_depth_maps_oracle(workspace, settings, ground_truth, seed)
     else:
-        valid = compute_depth_maps_cpu(workspace, cfg)
+        valid = compute_depth_maps_cpu(workspace, settings)
     names = [n for n, count in valid.items() if count > 0]
     output_ply = Path(out_dir) / "dense.ply"
     report = FusionReport(0, 0, None)
     if names:
-        report = _fuse_atomic(workspace, output_ply, fusion_config(backend, cfg), names, deterministic)
+        report = _fuse_atomic(workspace, output_ply, fusion_config(backend, settings), names, deterministic)
     return {
         "backend": backend,
         "dense_time_s": time.perf_counter() - start,
@@ -373,21 +385,23 @@ def dense_reconstruct(
     }
 
 
-def fusion_config(backend: str, cfg: Mapping) -> Mapping:
+def fusion_config(backend: str, settings: DenseSettings) -> DenseSettings:
     """The dense settings ``backend``'s maps are fused with. The oracle's depth comes from no
     matching window, and its noise is the stereo model's alone (``reconstruct.oracle``), so fusion
     weighs it by that model: ``fusion.slant_window_px`` 0."""
-    fusion = cfg["fusion"]
-    if backend != "oracle" or not float(fusion.get("slant_window_px", 0.0)):
-        return cfg
-    return {**cfg, "fusion": {**fusion, "slant_window_px": 0.0}}
+    fusion = settings.fusion
+    if backend != "oracle" or not fusion.slant_window_px:
+        return settings
+    return dataclasses.replace(settings, fusion=dataclasses.replace(fusion, slant_window_px=0.0))
 
 
-def _fuse_atomic(workspace: Path, output_ply: Path, cfg: Mapping, names, deterministic: bool) -> FusionReport:
+def _fuse_atomic(
+    workspace: Path, output_ply: Path, settings: DenseSettings, names, deterministic: bool
+) -> FusionReport:
     holder = {}
 
     def writer(tmp: Path) -> None:
-        holder["report"] = fuse_report(workspace, tmp, cfg, names, deterministic)
+        holder["report"] = fuse_report(workspace, tmp, settings, names, deterministic)
         # pycolmap also writes which images saw each point (<ply>.vis, ~70 MB a cell); nothing
         # here reads it, and under the temporary name it would be left behind.
         tmp.with_name(tmp.name + ".vis").unlink(missing_ok=True)

@@ -37,6 +37,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from reconstruct.dense_settings import FusionSettings
 from reconstruct.depth_filter import project
 from reconstruct.stereo_noise import slant_depth_sigma, stereo_depth_sigma
 from reconstruct.workspace import read_maps
@@ -73,7 +74,7 @@ def fuse_along_rays(
     views: Mapping,
     neighbours: Mapping[str, list[str]],
     baselines: Mapping[str, float],
-    cfg: Mapping,
+    fusion: FusionSettings,
 ) -> dict[str, np.ndarray]:
     """Fuse the geometric maps of ``names`` (see the module docstring).
 
@@ -83,7 +84,7 @@ def fuse_along_rays(
         views: ``reconstruct.dense.View`` by name (OpenCV intrinsics, cam_from_world, metres).
         neighbours: every view's other views, most overlapping first.
         baselines: every view's stereo baseline (m), the precision weight's B.
-        cfg: the ``reconstruct.dense.fusion`` settings.
+        fusion: the ``reconstruct.dense.fusion`` settings.
 
     Returns:
         ``points`` (N, 3), ``normals`` (N, 3) world unit normals, ``colors`` (N, 3) in [0, 1],
@@ -94,12 +95,12 @@ def fuse_along_rays(
     workspace = Path(workspace)
     names = list(names)
     mapped = set(names)
-    n_neighbours = int(cfg["ray_neighbours"])
-    min_pixels = int(cfg["min_num_pixels"])
-    rel_tol = float(cfg["max_depth_error"])
-    min_cos = math.cos(math.radians(float(cfg["max_normal_error"])))
-    slant_px = float(cfg.get("slant_window_px", 0.0))
-    gate_px = float(cfg.get("gate_disparity_px", 0.0))
+    n_neighbours = fusion.ray_neighbours
+    min_pixels = fusion.min_num_pixels
+    rel_tol = fusion.max_depth_error
+    min_cos = math.cos(math.radians(fusion.max_normal_error))
+    slant_px = fusion.slant_window_px
+    gate_px = fusion.gate_disparity_px
     used = {name: np.zeros((views[name].height, views[name].width), bool) for name in names}
     cache = _MapCache(workspace, 2 * n_neighbours + 2)
     out: dict[str, list[np.ndarray]] = {key: [] for key in CLOUD_FIELDS}

@@ -19,13 +19,13 @@ fraction of one SGBM pair.
 from __future__ import annotations
 
 import zlib
-from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 import open3d as o3d
 import trimesh
 
+from reconstruct.dense_settings import DenseSettings
 from reconstruct.stereo_noise import stereo_depth_sigma
 from reconstruct.workspace import read_views, select_partners, stereo_baselines, write_maps
 from scene.enclosure import raycasting_scene
@@ -71,22 +71,23 @@ def oracle_view(
 
 
 def compute_depth_maps_oracle(
-    workspace: Path, cfg: Mapping, ground_truth: trimesh.Trimesh, seed: int
+    workspace: Path, settings: DenseSettings, ground_truth: trimesh.Trimesh, seed: int
 ) -> dict[str, int]:
     """Oracle back-end: a depth and normal map for every view of the workspace that has a stereo
     partner (``select_partners``, as the CPU back-end chooses them); returns valid-pixel counts.
 
     Args:
         workspace: the dense workspace (undistorted images and the registered model).
-        cfg: the ``reconstruct.dense`` config (``oracle.disparity_sigma_px`` and the partner rules).
+        settings: the ``reconstruct.dense`` settings (``oracle.disparity_sigma_px``, px, and the
+            partner rules).
         ground_truth: the ground-truth mesh in the model's frame (world metres).
         seed: seeds each view's noise (with the view's name).
     """
     workspace = Path(workspace)
     views = read_views(workspace)
-    partners = select_partners(workspace, views, cfg)
-    sigma_px = float(cfg["oracle"]["disparity_sigma_px"])
-    baselines = stereo_baselines(views, partners, cfg.get("partner_weights", "equal"))
+    partners = select_partners(workspace, views, settings)
+    sigma_px = settings.oracle.disparity_sigma_px
+    baselines = stereo_baselines(views, partners, settings.partner_weights)
     scene = raycasting_scene(ground_truth)
     valid = {}
     for name in sorted(views):

@@ -1,8 +1,12 @@
 """The reconstruction stage end to end: a rendered flight in, a sparse model, a dense cloud and (for
 the exploratory flight) a proxy mesh out, with content-hash caching and COLMAP's log in the output.
 
-    reconstruct_flight(image_dir, out_dir, cfg, seed) -> record        # SfM, alignment, dense
-    build_proxy(image_dir, cache_dir, cfg, seed) -> (mesh, record)      # + Poisson proxy
+    reconstruct_flight(image_dir, out_dir, settings, seed) -> record      # SfM, alignment, dense
+    build_proxy(image_dir, cache_dir, settings, seed) -> (mesh, record)   # + Poisson proxy
+
+Each takes the stage's typed settings (``reconstruct.settings.ReconstructSettings``); the content
+keys that let a kept result stand in for a run are computed here, around the stages
+(``reconstruct.cache_keys``), from the settings as given.
 
 Output folder of ``reconstruct_flight``::
 
@@ -23,8 +27,9 @@ import json
 import logging
 import shutil
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -37,10 +42,10 @@ from reconstruct.dense import dense_reconstruct
 from reconstruct.errors import ReconstructionError
 from reconstruct.flight import Flight, read_flight, simulate_gnss
 from reconstruct.proxy import poisson_proxy
+from reconstruct.settings import ReconstructSettings
 from reconstruct.sfm import run_sfm
 from reconstruct.timing import stage_time
 from scene.base import Box
-from scene.config import StageSettings, plain, stage_node
 from scene.io import write_atomic, write_json_atomic
 
 log = logging.getLogger(__name__)
@@ -51,7 +56,6 @@ RECORD_FILE = "recon.json"
 SFM_RECORD_FILE = "sfm.json"
 PROXY_FILE = "proxy.ply"
 PROXY_RECORD_FILE = "proxy.json"
-# The config sections a flight's reconstruction depends on (the proxy section does not matter here).
 
 
 @contextmanager
@@ -76,7 +80,7 @@ def colmap_log_to(out_dir: Path) -> Iterator[None]:
 
 
 def reconstruct_flight(
-    image_dir, out_dir, cfg: Mapping | StageSettings, seed: int, ground_truth=None, sparse_check=None
+    image_dir, out_dir, settings: ReconstructSettings, seed: int, ground_truth=None, sparse_check=None
 ) -> dict:
     """SfM with GNSS priors, similarity alignment to GNSS, dense depth + fusion for one flight.
 
@@ -86,7 +90,7 @@ def reconstruct_flight(
     Args:
         image_dir: the renderer's output (images + ``cameras.json``).
         out_dir: output folder (see the module docstring for its layout).
-        cfg: the ``reconstruct`` config (``reconstruct.settings.ReconstructSettings`` in a cell).
+        settings: the ``reconstruct`` settings, typed (``ReconstructSettings.from_config``).
         seed: seed of the GNSS noise, RANSAC and the mapper.
         ground_truth: the ground-truth mesh, for ``dense.backend=oracle`` only.
         sparse_check: called with the record once the aligned sparse model is on disk, before the
@@ -104,9 +108,8 @@ def reconstruct_flight(
             alignment, or no dense points; its ``record`` carries the failure for ``metrics.json``.
     """
     image_dir, out_dir = Path(image_dir), Path(out_dir)
-    cfg = stage_node(cfg)
-    flight = _checked_flight(image_dir, cfg)
-    key = flight_content_key(image_dir, flight, cfg, seed)
+    flight = _checked_flight(image_dir, _typed(settings))
+    key = flight_content_key(image_dir, flight, settings.node, seed)
     cached = cached_record(out_dir, key, RECORD_FILE, ("sparse", "dense.ply", "database.db"))
     if cached is not None:
         log.info("reconstruction of %s unchanged: reusing %s", image_dir, out_dir)
@@ -119,12 +122,12 @@ def reconstruct_flight(
         for old_log in out_dir.glob("colmap.log.*"):
             old_log.unlink()
 
-    gnss, sigma = _write_gnss(flight, out_dir, cfg, seed)
+    gnss, sigma = _write_gnss(flight, out_dir, settings.gnss_sigma_m, seed)
     record: dict = {"status": "running", "n_images": len(flight), "gnss_sigma_m": sigma}
     try:
         with colmap_log_to(out_dir):
             if sparse_stage is None:
-                record |= _sparse_stage(flight, out_dir, gnss, sigma, cfg, seed, record)
+                record |= _sparse_stage(flight, out_dir, gnss, sigma, settings, seed, record)
                 write_json_atomic(out_dir / SFM_RECORD_FILE, record | {"status": "ok", "content_key": key})
             else:
                 log.info(
@@ -139,19 +142,19 @@ def reconstruct_flight(
             if sparse_check is not None:
                 sparse_check(record)
             record |= _dense_stage(
-                flight.image_dir, out_dir / "sparse", out_dir, cfg, record, ground_truth, seed
+                flight.image_dir, out_dir / "sparse", out_dir, settings, record, ground_truth, seed
             )
     except ReconstructionError as exc:
         exc.record = record | {"status": "failed", "cached": False} | exc.record
         write_json_atomic(out_dir / RECORD_FILE, exc.record | {"content_key": key})
         raise
     record |= {"status": "ok", "cached": False, "colmap_log": _newest_log(out_dir), "content_key": key}
-    record["deterministic"] = bool(cfg["deterministic"])
+    record["deterministic"] = settings.deterministic
     write_json_atomic(out_dir / RECORD_FILE, record)
     return record
 
 
-def sfm_flight(image_dir, out_dir, cfg: Mapping | StageSettings, seed: int) -> dict:
+def sfm_flight(image_dir, out_dir, settings: ReconstructSettings, seed: int) -> dict:
     """The SfM stage alone, uncached (``uavplan stage sfm``): SfM with GNSS priors and the
     alignment to them. Writes ``out_dir/``: ``database.db``, ``gnss.json``, ``sparse/`` (aligned,
     world metres), ``colmap.log.*``.
@@ -163,17 +166,16 @@ def sfm_flight(image_dir, out_dir, cfg: Mapping | StageSettings, seed: int) -> d
         ReconstructionError: as ``reconstruct_flight``'s SfM half.
     """
     image_dir, out_dir = Path(image_dir), Path(out_dir)
-    cfg = stage_node(cfg)
-    flight = _checked_flight(image_dir, cfg)
+    flight = _checked_flight(image_dir, _typed(settings))
     out_dir.mkdir(parents=True, exist_ok=True)
-    gnss, sigma = _write_gnss(flight, out_dir, cfg, seed)
+    gnss, sigma = _write_gnss(flight, out_dir, settings.gnss_sigma_m, seed)
     record: dict = {"status": "running", "n_images": len(flight), "gnss_sigma_m": sigma}
     with colmap_log_to(out_dir):
-        return _sparse_stage(flight, out_dir, gnss, sigma, cfg, seed, record) | {"status": "ok"}
+        return _sparse_stage(flight, out_dir, gnss, sigma, settings, seed, record) | {"status": "ok"}
 
 
 def dense_flight(
-    image_dir, sparse_dir, out_dir, cfg: Mapping | StageSettings, seed: int, ground_truth=None
+    image_dir, sparse_dir, out_dir, settings: ReconstructSettings, seed: int, ground_truth=None
 ) -> dict:
     """The dense stage alone, uncached (``uavplan stage dense``): depth maps and fusion of the
     aligned model ``sparse_dir`` over the images of ``image_dir``, into ``out_dir/dense.ply`` (world
@@ -187,13 +189,23 @@ def dense_flight(
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    return _dense_stage(Path(image_dir), Path(sparse_dir), out_dir, stage_node(cfg), {}, ground_truth, seed)
+    return _dense_stage(Path(image_dir), Path(sparse_dir), out_dir, _typed(settings), {}, ground_truth, seed)
 
 
-def _checked_flight(image_dir: Path, cfg: Mapping) -> Flight:
+def _typed(settings) -> ReconstructSettings:
+    """``settings``, refused unless typed: the stage reads no config mapping."""
+    if not isinstance(settings, ReconstructSettings):
+        raise TypeError(
+            f"the reconstruction takes ReconstructSettings (ReconstructSettings.from_config), "
+            f"not {type(settings).__name__}"
+        )
+    return settings
+
+
+def _checked_flight(image_dir: Path, settings: ReconstructSettings) -> Flight:
     """The rendered (or photographed) flight in ``image_dir``, refused below ``min_images``."""
     flight = read_flight(image_dir)
-    min_images = int(cfg["min_images"])
+    min_images = settings.min_images
     if len(flight) < max(min_images, 2):
         raise ReconstructionError(
             f"{image_dir}: {len(flight)} images, the reconstruction needs at least {max(min_images, 2)}",
@@ -202,11 +214,10 @@ def _checked_flight(image_dir: Path, cfg: Mapping) -> Flight:
     return flight
 
 
-def _write_gnss(flight: Flight, out_dir: Path, cfg: Mapping, seed: int) -> tuple[np.ndarray, float]:
+def _write_gnss(flight: Flight, out_dir: Path, sigma: float, seed: int) -> tuple[np.ndarray, float]:
     """The GNSS priors (m, world frame) and their sigma (m), written to ``out_dir/gnss.json``.
 
-    A real flight's fixes are the priors; a rendered one's true positions get simulated noise."""
-    sigma = float(cfg["gnss"]["sigma_m"])
+    A real flight's fixes are the priors; a rendered one's true positions get noise of ``sigma`` (m)."""
     gnss = flight.positions if flight.gnss_measured else simulate_gnss(flight.positions, sigma, seed)
     write_json_atomic(
         out_dir / "gnss.json",
@@ -219,16 +230,21 @@ def _write_gnss(flight: Flight, out_dir: Path, cfg: Mapping, seed: int) -> tuple
     return gnss, sigma
 
 
-def _drop(record: Mapping, keys) -> dict:
+def _drop(record: dict, keys) -> dict:
     return {k: v for k, v in record.items() if k not in keys}
 
 
 def _sparse_stage(
-    flight: Flight, out_dir: Path, gnss: np.ndarray, sigma: float, cfg: Mapping, seed: int, record: dict
+    flight: Flight,
+    out_dir: Path,
+    gnss: np.ndarray,
+    sigma: float,
+    settings: ReconstructSettings,
+    seed: int,
+    record: dict,
 ) -> dict:
     """SfM, georeferencing and the GNSS check; writes ``sparse/``. Returns the record so far."""
-    deterministic = bool(cfg["deterministic"])
-    sfm = run_sfm(flight, out_dir, gnss, sigma, cfg["sfm"], seed, deterministic)
+    sfm = run_sfm(flight, out_dir, gnss, sigma, settings.sfm, seed, settings.deterministic)
     record |= {f"{k}_time_s": v for k, v in sfm.times_s.items()}
     record |= {f"{k}_cpu_s": v for k, v in sfm.cpu_s.items()}
     record |= {
@@ -239,7 +255,7 @@ def _sparse_stage(
         "n_pairs_rejected_by_priors": sfm.n_pairs_rejected,
         "database": str(out_dir / "database.db"),
     }
-    min_fraction = float(cfg["min_registered_fraction"])
+    min_fraction = settings.min_registered_fraction
     n_mapped = len({m.image(i).name for m in sfm.models for i in m.reg_image_ids()})
     record |= {
         "n_models": sfm.n_models,
@@ -254,7 +270,7 @@ def _sparse_stage(
             {"stage": "mapping"},
         )
     with stage_time() as clock:
-        rec, merge_report = georeference_models(sfm.models, flight.names, gnss, sigma, cfg["align"], seed)
+        rec, merge_report = georeference_models(sfm.models, flight.names, gnss, sigma, settings.align, seed)
     record["similarity_time_s"] = clock.wall_s
     record |= merge_report | {"n_registered_before_gnss_check": n_mapped}
     record |= pose_errors(rec, flight)
@@ -286,7 +302,7 @@ def _dense_stage(
     image_dir: Path,
     sparse_dir: Path,
     out_dir: Path,
-    cfg: Mapping,
+    settings: ReconstructSettings,
     record: dict,
     ground_truth=None,
     seed: int = 0,
@@ -297,8 +313,8 @@ def _dense_stage(
             sparse_dir,
             image_dir,
             out_dir,
-            cfg["dense"],
-            bool(cfg["deterministic"]),
+            settings.dense,
+            settings.deterministic,
             ground_truth=ground_truth,
             seed=seed,
         )
@@ -314,7 +330,7 @@ def _dense_stage(
     if dense["dense_path"] is None or dense["n_dense_points"] == 0:
         raise ReconstructionError(f"{image_dir}: dense reconstruction produced no points", {"stage": "dense"})
     record["dense_ply"] = dense["dense_path"]
-    if not bool(cfg.get("keep_dense_workspace", True)):
+    if not settings.keep_dense_workspace:
         record["dense_workspace_freed_mb"] = _remove_tree(out_dir / "dense") / 1e6
     log.info(
         "dense: %d points from %d depth maps in %.1f s",
@@ -348,7 +364,7 @@ def _newest_log(out_dir: Path) -> str | None:
 
 
 def oracle_flight(
-    recon_dir, image_dir, out_dir, cfg: Mapping | StageSettings, seed: int, ground_truth
+    recon_dir, image_dir, out_dir, settings: ReconstructSettings, seed: int, ground_truth
 ) -> dict:
     """The matcher's ceiling beside a finished reconstruction: the ``oracle`` back-end's depth maps
     at the registered cameras of ``recon_dir/sparse``, fused by the same fusion into
@@ -358,19 +374,18 @@ def oracle_flight(
         ``dense_ply``, ``dense_time_s``, ``dense_cpu_s``, ``n_depth_maps``, ``n_dense_points``.
     """
     out_dir = Path(out_dir)
-    cfg = stage_node(cfg)
-    dense_cfg = {**plain(cfg["dense"]), "backend": "oracle"}
+    settings = _typed(settings)
     with stage_time() as clock:
         dense = dense_reconstruct(
             Path(recon_dir) / "sparse",
             image_dir,
             out_dir,
-            dense_cfg,
-            bool(cfg["deterministic"]),
+            replace(settings.dense, backend="oracle"),
+            settings.deterministic,
             ground_truth=ground_truth,
             seed=seed,
         )
-    if not bool(cfg.get("keep_dense_workspace", True)):
+    if not settings.keep_dense_workspace:
         _remove_tree(out_dir / "dense")
     if dense["dense_path"] is None:
         raise ReconstructionError(f"{out_dir}: the oracle produced no depth map", {"stage": "oracle"})
@@ -401,39 +416,15 @@ def proxy_bounds(sparse_dir: Path, margin_m: float) -> Box:
     return Box(tuple(lo.tolist()), tuple(hi.tolist())).expanded(margin_m, margin_m, margin_m)
 
 
-def proxy_flight_config(cfg: Mapping) -> dict:
-    """The ``reconstruct`` config for the exploratory flight: ``proxy.dense`` overrides ``dense``
-    (nested sections key by key: ``proxy.dense.fusion.method`` leaves the other fusion settings).
-
-    The proxy is meshed from a cloud voxelised at ``proxy.voxel_size_m``, so its depth maps need not
-    be computed at the scored flights' resolution (``proxy.dense.max_image_size``).
-    """
-    flight_cfg = plain(cfg)
-    overrides = flight_cfg["proxy"].get("dense") or {}
-    flight_cfg["dense"] = _overridden(flight_cfg["dense"], overrides, "reconstruct.proxy.dense")
-    return flight_cfg
-
-
-def _overridden(base: Mapping, overrides: Mapping, where: str) -> dict:
-    unknown = sorted(set(overrides) - set(base))
-    if unknown:
-        raise ValueError(f"{where}: unknown dense settings {unknown}")
-    out = dict(base)
-    for key, value in overrides.items():
-        nested = isinstance(value, Mapping) and isinstance(base[key], Mapping)
-        out[key] = _overridden(base[key], value, f"{where}.{key}") if nested else value
-    return out
-
-
-def _roi_key(roi: Box | None, pcfg: Mapping) -> list | None:
+def _roi_key(roi: Box | None, roi_margin_m: float | None) -> list | None:
     """The region of interest as it enters the proxy's content key (None when it cuts nothing)."""
-    if roi is None or pcfg.get("roi_margin_m") is None:
+    if roi is None or roi_margin_m is None:
         return None
     return [list(roi.lo), list(roi.hi)]
 
 
 def build_proxy(
-    image_dir, cache_dir, cfg: Mapping, seed: int, roi: Box | None = None, sparse_check=None
+    image_dir, cache_dir, settings: ReconstructSettings, seed: int, roi: Box | None = None, sparse_check=None
 ) -> tuple[trimesh.Trimesh, dict]:
     """Reconstruct the exploratory flight and mesh its dense cloud into the planners' proxy.
 
@@ -444,7 +435,7 @@ def build_proxy(
     Args:
         image_dir: the exploratory flight's images + ``cameras.json``.
         cache_dir: output folder of the reconstruction and the proxy.
-        cfg: the ``reconstruct`` config.
+        settings: the ``reconstruct`` settings (the exploratory flight runs them with ``proxy.dense``).
         seed: seed of the reconstruction.
         roi: the survey's region of interest (the box the exploratory flight was planned on). With
             ``proxy.roi_margin_m`` set, the proxy is cut to it grown by that margin sideways, so the
@@ -456,11 +447,11 @@ def build_proxy(
         ``proxy_time_s``, ``proxy_path``).
     """
     cache_dir = Path(cache_dir)
-    pcfg = cfg["proxy"]
+    proxy = _typed(settings).proxy
     recon = reconstruct_flight(
-        image_dir, cache_dir, proxy_flight_config(cfg), seed, sparse_check=sparse_check
+        image_dir, cache_dir, settings.for_exploration(), seed, sparse_check=sparse_check
     )
-    min_fraction = float(pcfg["min_registered_fraction"])
+    min_fraction = proxy.min_registered_fraction
     if recon["registered_fraction"] < min_fraction:
         raise ReconstructionError(
             f"{image_dir}: exploratory flight registered {recon['registered_fraction']:.1%} < "
@@ -470,7 +461,11 @@ def build_proxy(
         )
     key = hashlib.sha256(
         json.dumps(
-            {"recon": recon["content_key"], "proxy": plain(pcfg), "roi": _roi_key(roi, pcfg)},
+            {
+                "recon": recon["content_key"],
+                "proxy": settings.node["proxy"],
+                "roi": _roi_key(roi, proxy.roi_margin_m),
+            },
             sort_keys=True,
         ).encode()
     ).hexdigest()
@@ -480,10 +475,9 @@ def build_proxy(
         mesh = trimesh.load(cache_dir / PROXY_FILE, force="mesh", process=False)
         return mesh, recon | cached | {"proxy_cached": True}
     start = time.perf_counter()
-    bounds = proxy_bounds(Path(recon["sparse_dir"]), float(pcfg["crop_margin_m"]))
-    roi_margin = pcfg.get("roi_margin_m")
-    if roi is not None and roi_margin is not None:
-        site = roi.expanded(float(roi_margin))
+    bounds = proxy_bounds(Path(recon["sparse_dir"]), proxy.crop_margin_m)
+    if roi is not None and proxy.roi_margin_m is not None:
+        site = roi.expanded(proxy.roi_margin_m)
         lo, hi = bounds.lo_array.copy(), bounds.hi_array.copy()
         lo[:2], hi[:2] = np.maximum(lo[:2], site.lo_array[:2]), np.minimum(hi[:2], site.hi_array[:2])
         if np.any(lo >= hi):
@@ -492,7 +486,7 @@ def build_proxy(
                 recon | {"status": "failed", "stage": "proxy"},
             )
         bounds = Box(tuple(lo.tolist()), tuple(hi.tolist()))
-    mesh = poisson_proxy(recon["dense_ply"], bounds, cfg, bool(cfg["deterministic"]))
+    mesh = poisson_proxy(recon["dense_ply"], bounds, proxy, settings.deterministic)
     write_atomic(cache_dir / PROXY_FILE, lambda p: mesh.export(p))
     proxy_record = {
         "status": "ok",

@@ -5,20 +5,15 @@ paper's setting, for fast planner work and tests) a decimated and noised ground-
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
 
 import numpy as np
 import trimesh
 
 from reconstruct.errors import ReconstructionError
+from reconstruct.settings import ProxySettings
 from scene.base import Box, Scene
 
 log = logging.getLogger(__name__)
-
-
-def _proxy_cfg(cfg: Mapping) -> Mapping:
-    """The ``proxy`` section of a ``reconstruct`` config (a bare proxy section is accepted too)."""
-    return cfg["proxy"] if "proxy" in cfg else cfg
 
 
 def crop_mesh_to_box(mesh: trimesh.Trimesh, box: Box, max_edge_m: float) -> trimesh.Trimesh:
@@ -72,7 +67,7 @@ def decimate(mesh: trimesh.Trimesh, face_budget: int) -> trimesh.Trimesh:
     )
 
 
-def degraded_ground_truth(scene: Scene, cfg: Mapping, seed: int) -> trimesh.Trimesh:
+def degraded_ground_truth(scene: Scene, proxy: ProxySettings, seed: int) -> trimesh.Trimesh:
     """A stand-in proxy: the ground truth cropped, decimated and noised. NOT the paper's setting.
 
     The ground-truth mesh is cropped to the scene's evaluation region (structure plus ground apron,
@@ -82,24 +77,17 @@ def degraded_ground_truth(scene: Scene, cfg: Mapping, seed: int) -> trimesh.Trim
 
     Args:
         scene: the ground-truth scene.
-        cfg: the ``reconstruct`` config (its ``proxy`` section is used) or the ``proxy`` section.
+        proxy: ``reconstruct.proxy``, typed (``ReconstructSettings.proxy``).
         seed: seed of the noise.
 
     Returns:
         The degraded mesh in world metres.
     """
-    pcfg = _proxy_cfg(cfg)
-    dcfg = pcfg["degraded"]
-    max_edge = float(dcfg["max_edge_m"])
-    sigma = float(dcfg["noise_sigma_m"])
-    if max_edge <= 0:
-        raise ValueError(f"proxy.degraded.max_edge_m must be positive, got {max_edge}")
-    if sigma < 0:
-        raise ValueError(f"proxy.degraded.noise_sigma_m must be >= 0, got {sigma}")
+    max_edge, sigma = proxy.degraded.max_edge_m, proxy.degraded.noise_sigma_m
     mesh = crop_mesh_to_box(scene.ground_truth_mesh, scene.evaluation_region, max_edge)
     if len(mesh.faces) == 0:
         raise ValueError(f"scene {scene.name!r}: no ground-truth surface inside the evaluation region")
-    mesh = decimate(mesh, int(pcfg["face_budget"]))
+    mesh = decimate(mesh, proxy.face_budget)
     rng = np.random.default_rng(seed)
     offsets = rng.normal(0.0, sigma, size=len(mesh.vertices))
     noisy = mesh.vertices + offsets[:, None] * mesh.vertex_normals
@@ -134,7 +122,9 @@ def oriented_cloud(dense_ply, bounds: Box, voxel_m: float) -> dict[str, np.ndarr
     return {"points": np.asarray(cloud.points)[keep], "normals": normals[keep] / length[keep, None]}
 
 
-def poisson_proxy(dense_ply, bounds: Box, cfg: Mapping, deterministic: bool = False) -> trimesh.Trimesh:
+def poisson_proxy(
+    dense_ply, bounds: Box, proxy: ProxySettings, deterministic: bool = False
+) -> trimesh.Trimesh:
     """Proxy mesh from a fused dense cloud: crop, voxel-downsample, screened Poisson, density trim,
     crop again, decimate.
 
@@ -142,7 +132,7 @@ def poisson_proxy(dense_ply, bounds: Box, cfg: Mapping, deterministic: bool = Fa
         dense_ply: fused cloud (positions, ideally with normals) in world metres.
         bounds: region of interest in world metres (e.g. the flight's camera hull plus a margin);
             points outside it are dropped and the mesh is cut back to it.
-        cfg: the ``reconstruct`` config (its ``proxy`` section) or the ``proxy`` section.
+        proxy: ``reconstruct.proxy``, typed (``ReconstructSettings.proxy``).
         deterministic: solve the Poisson system on one thread (the threaded solver's sums, and so
             the mesh's last bits, change from run to run).
 
@@ -155,7 +145,6 @@ def poisson_proxy(dense_ply, bounds: Box, cfg: Mapping, deterministic: bool = Fa
     # heavy (open3d): imported on use
     import open3d as o3d
 
-    pcfg = _proxy_cfg(cfg)
     cloud = o3d.io.read_point_cloud(str(dense_ply))
     points = np.asarray(cloud.points)
     inside = bounds.contains(points) if len(points) else np.zeros(0, bool)
@@ -165,28 +154,24 @@ def poisson_proxy(dense_ply, bounds: Box, cfg: Mapping, deterministic: bool = Fa
             {"stage": "proxy", "n_dense_points": len(points)},
         )
     cloud = cloud.select_by_index(np.flatnonzero(inside))
-    voxel = float(pcfg["voxel_size_m"])
+    voxel = proxy.voxel_size_m
     if voxel > 0:
         cloud = cloud.voxel_down_sample(voxel)
     if not cloud.has_normals():
-        radius = float(pcfg["normal_radius_m"])
-        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=30))
+        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=proxy.normal_radius_m, max_nn=30))
         cloud.orient_normals_consistent_tangent_plane(15)
     log.info(
         "poisson proxy: %d points (voxel %.3f m), depth %d",
         len(cloud.points),
         voxel,
-        int(pcfg["poisson_depth"]),
+        proxy.poisson_depth,
     )
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         mesh, densities = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
-            cloud, depth=int(pcfg["poisson_depth"]), linear_fit=False, n_threads=1 if deterministic else -1
+            cloud, depth=proxy.poisson_depth, linear_fit=False, n_threads=1 if deterministic else -1
         )
     densities = np.asarray(densities)
-    quantile = float(pcfg["density_quantile"])
-    if not 0.0 <= quantile < 1.0:
-        raise ValueError(f"proxy.density_quantile must lie in [0, 1), got {quantile}")
-    mesh.remove_vertices_by_mask(densities < np.quantile(densities, quantile))
+    mesh.remove_vertices_by_mask(densities < np.quantile(densities, proxy.density_quantile))
     # Poisson closes the surface far beyond the data; keep what lies within the cloud's own box.
     cloud_box = Box.from_points(np.asarray(cloud.points))
     vertices = np.asarray(mesh.vertices)
@@ -198,4 +183,4 @@ def poisson_proxy(dense_ply, bounds: Box, cfg: Mapping, deterministic: bool = Fa
         raise ReconstructionError(
             f"{dense_ply}: Poisson reconstruction produced no surface", {"stage": "proxy"}
         )
-    return decimate(out, int(pcfg["face_budget"]))
+    return decimate(out, proxy.face_budget)

@@ -1,45 +1,153 @@
-"""The reconstruction stage's settings in a cell: the ``reconstruct`` group detached from the run
-config, with its typed blocks (SfM, dense, the proxy flight's dense) checked once at the top of the
-cell (``pipeline.settings.cell_settings``) and handed down."""
+"""The reconstruction stage's settings (the ``reconstruct`` group of ``conf/reconstruct/default.yaml``),
+typed and checked once where they are built: ``ReconstructSettings.from_config(node)`` at the top of
+a cell (``pipeline.settings.cell_settings``), of a stage command or of a photo job, then handed down.
+Every function of the stage reads these, never the config mapping; the mapping itself is kept only
+for the stage's cache keys (``reconstruct.cache_keys``), which hash the settings as the user gave them.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
-from omegaconf import DictConfig
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
 
 from reconstruct.dense_settings import DenseSettings
 from reconstruct.sfm_settings import SfmSettings
-from scene.config import StageSettings, detached
+from scene.config import plain, setting, typed_settings
+
+PROXY_SOURCES = ("reconstruction", "ground_truth_degraded")
 
 
 @dataclass(frozen=True)
-class ReconstructSettings(StageSettings):
-    """The ``reconstruct`` group of a cell (``reconstruct_flight`` and ``oracle_flight`` read it).
+class AlignSettings:
+    """The similarity to the GNSS priors and the merge of partial models (``reconstruct.align``)."""
+
+    max_error_sigmas: float = setting(above=0)  # RANSAC inlier threshold, in GNSS sigmas
+    min_error_m: float = setting(low=0)  # ... but never below this (m)
+    min_common_images: int = setting(low=1)  # at least 3 are used whatever is set
+    deregister_error_sigmas: float = setting(above=0)  # a camera this far from its fix is dropped
+    merge_min_images: int = setting(low=1)  # a partial model merged only from this many images
+
+
+@dataclass(frozen=True)
+class DegradedSettings:
+    """``proxy.source: ground_truth_degraded``: the ground truth, subdivided and noised (m)."""
+
+    max_edge_m: float = setting(above=0)
+    noise_sigma_m: float = setting(low=0)
+
+
+@dataclass(frozen=True)
+class ProxySettings:
+    """The planners' proxy (``reconstruct.proxy``): the exploratory flight's cloud, Poisson-meshed.
+
+    ``dense`` overrides ``reconstruct.dense`` for the exploratory flight, key by key
+    (``ReconstructSettings.proxy_dense`` is the result, typed)."""
+
+    source: str = setting(choices=PROXY_SOURCES)
+    min_registered_fraction: float = setting(low=0)  # above 1: no proxy from any flight
+    face_budget: int = setting(low=1)
+    poisson_depth: int = setting(low=1)
+    density_quantile: float = setting(low=0)  # below 1 (__post_init__)
+    normal_radius_m: float = setting(above=0)
+    voxel_size_m: float = setting(low=0)  # 0: no downsampling
+    crop_margin_m: float = setting(low=0)
+    degraded: DegradedSettings = setting()
+    roi_margin_m: float | None = setting(None, low=0)  # null: the proxy is not cut to the site
+    dense: dict | None = setting(None)
+
+    def __post_init__(self) -> None:
+        if not self.density_quantile < 1.0:
+            raise ValueError(f"density_quantile must lie in [0, 1), got {self.density_quantile}")
+
+
+@dataclass(frozen=True)
+class ReconstructSettings:
+    """The ``reconstruct`` group of a flight's reconstruction, typed.
 
     Attributes:
-        node: the group, resolved (the stage's cache keys hash it).
-        sfm: its ``sfm`` block, typed.
-        dense: its ``dense`` block, typed.
-        proxy_dense: the dense settings the exploratory flight runs with (``proxy.dense`` over
-            ``dense``), typed.
+        node: the group as plain values (the stage's cache keys hash it; nothing else reads it).
+        min_images: fewest images a flight may have.
+        min_registered_fraction: fewest images SfM must register, as a share of the flight.
+        gnss_sigma_m: the priors' standard deviation (m); a rendered flight's positions get this noise.
+        deterministic: single-threaded where threads change results (the study's runs).
+        keep_dense_workspace: keep ``dense/`` (depth maps) after fusion.
+        oracle_beside: the cell also runs the oracle beside its reconstruction.
+        sfm, align, dense, proxy: the blocks, typed.
+        proxy_dense: the dense settings of the exploratory flight (``proxy.dense`` over ``dense``).
     """
 
+    node: dict
+    min_images: int
+    min_registered_fraction: float
+    gnss_sigma_m: float
+    deterministic: bool
+    keep_dense_workspace: bool
+    oracle_beside: bool
     sfm: SfmSettings
+    align: AlignSettings
     dense: DenseSettings
+    proxy: ProxySettings
     proxy_dense: DenseSettings
 
     @classmethod
-    def build(cls, node: DictConfig, proxy_dense: dict) -> ReconstructSettings:
-        """Check and type ``node`` (a ``ValueError`` names the bad setting)."""
+    def from_config(cls, node: Mapping, prefix: str = "reconstruct") -> ReconstructSettings:
+        """Check and type the ``reconstruct`` mapping (a ``ValueError`` names the bad setting)."""
+        node = plain(node)
+        if not isinstance(node, Mapping):
+            raise ValueError(f"{prefix} must be a mapping, got {node!r}")
+        for key in ("min_images", "min_registered_fraction", "gnss", "sfm", "align", "dense", "proxy"):
+            if key not in node:
+                raise ValueError(f"{prefix}.{key}: missing")
+        sigma = node["gnss"].get("sigma_m") if isinstance(node["gnss"], Mapping) else None
+        if isinstance(sigma, bool) or not isinstance(sigma, int | float) or sigma < 0:
+            raise ValueError(f"{prefix}.gnss.sigma_m must be a number of metres >= 0, got {sigma!r}")
+        min_images = node["min_images"]
+        if isinstance(min_images, bool) or not isinstance(min_images, int):
+            raise ValueError(f"{prefix}.min_images must be an integer, got {min_images!r}")
+        fraction = node["min_registered_fraction"]
+        if isinstance(fraction, bool) or not isinstance(fraction, int | float) or not 0 <= fraction <= 1:
+            raise ValueError(f"{prefix}.min_registered_fraction must be in [0, 1], got {fraction!r}")
         return cls(
-            detached(node),
-            SfmSettings.from_config(node.sfm),
-            DenseSettings.from_config(node.dense),
-            DenseSettings.from_config(proxy_dense, "reconstruct.proxy.dense"),
+            node=node,
+            min_images=min_images,
+            min_registered_fraction=float(fraction),
+            gnss_sigma_m=float(sigma),
+            deterministic=bool(node.get("deterministic", False)),
+            keep_dense_workspace=bool(node.get("keep_dense_workspace", True)),
+            oracle_beside=bool(node.get("oracle_beside", False)),
+            sfm=SfmSettings.from_config(node["sfm"], f"{prefix}.sfm"),
+            align=typed_settings(AlignSettings, node["align"], f"{prefix}.align"),
+            dense=DenseSettings.from_config(node["dense"], f"{prefix}.dense"),
+            proxy=typed_settings(ProxySettings, node["proxy"], f"{prefix}.proxy"),
+            proxy_dense=DenseSettings.from_config(
+                proxy_flight_config(node)["dense"], f"{prefix}.proxy.dense"
+            ),
         )
 
-    @property
-    def oracle_beside(self) -> bool:
-        """Whether the cell also runs the oracle beside its reconstruction."""
-        return bool(self.node.get("oracle_beside", False))
+    def for_exploration(self) -> ReconstructSettings:
+        """These settings as the exploratory flight runs them: ``proxy.dense`` over ``dense``."""
+        return replace(self, node=proxy_flight_config(self.node), dense=self.proxy_dense)
+
+
+def proxy_flight_config(node: Mapping) -> dict:
+    """The ``reconstruct`` mapping of the exploratory flight: ``proxy.dense`` overrides ``dense``
+    (nested sections key by key: ``proxy.dense.fusion.method`` leaves the other fusion settings).
+
+    The proxy is meshed from a cloud voxelised at ``proxy.voxel_size_m``, so its depth maps need not
+    be computed at the scored flights' resolution (``proxy.dense.max_image_size``).
+    """
+    flight = plain(node)
+    overrides = flight["proxy"].get("dense") or {}
+    flight["dense"] = _overridden(flight["dense"], overrides, "reconstruct.proxy.dense")
+    return flight
+
+
+def _overridden(base: Mapping, overrides: Mapping, where: str) -> dict:
+    unknown = sorted(set(overrides) - set(base))
+    if unknown:
+        raise ValueError(f"{where}: unknown dense settings {unknown}")
+    out = dict(base)
+    for key, value in overrides.items():
+        nested = isinstance(value, Mapping) and isinstance(base[key], Mapping)
+        out[key] = _overridden(base[key], value, f"{where}.{key}") if nested else value
+    return out

@@ -9,7 +9,6 @@ from __future__ import annotations
 import logging
 import shutil
 import tempfile
-from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -74,8 +73,8 @@ class SfmResult:
         return len(self.models)
 
 
-def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> SfmOptions:
-    """Map the ``reconstruct.sfm`` config onto pycolmap options (the one place this is done).
+def sfm_options(settings: SfmSettings, seed: int = 0, deterministic: bool = False) -> SfmOptions:
+    """Map the ``reconstruct.sfm`` settings onto pycolmap options (the one place this is done).
 
     ``deterministic`` runs the mapper (and its bundle adjustments) and the matcher on one thread:
     Ceres' threaded solvers sum in an order that changes from run to run, and the mapper's next-image
@@ -84,7 +83,10 @@ def sfm_options(cfg: Mapping, seed: int = 0, deterministic: bool = False) -> Sfm
     once). Extraction gives the same database on any thread count (image ids fixed by
     ``extract_features``), so it keeps every core.
     """
-    settings = SfmSettings.from_config(cfg)
+    if not isinstance(settings, SfmSettings):
+        raise TypeError(
+            f"sfm_options takes SfmSettings (SfmSettings.from_config), not {type(settings).__name__}"
+        )
     ecfg, mcfg, pcfg = settings.extraction, settings.matching, settings.mapping
     threads = settings.num_threads
     mapper_threads = 1 if deterministic else threads
@@ -404,7 +406,7 @@ def run_sfm(
     work_dir: Path,
     gnss_positions: np.ndarray,
     gnss_sigma_m: float,
-    cfg: Mapping,
+    settings: SfmSettings,
     seed: int,
     deterministic: bool = False,
 ) -> SfmResult:
@@ -415,7 +417,7 @@ def run_sfm(
         work_dir: output folder; the database is rebuilt from scratch.
         gnss_positions: (N, 3) simulated GNSS positions in metres, one per image of ``flight``.
         gnss_sigma_m: their standard deviation in metres (the prior covariance).
-        cfg: the ``reconstruct.sfm`` config.
+        settings: ``reconstruct.sfm``, typed.
         seed: seed of COLMAP's RANSAC and mapper.
         deterministic: the same model, bit for bit, from the same inputs (see ``sfm_options``).
 
@@ -423,7 +425,7 @@ def run_sfm(
         Every model (arbitrary frames, largest first) and the wall and CPU seconds of
         ``extraction``, ``matching`` and ``mapping``.
     """
-    options = sfm_options(cfg, seed, deterministic)
+    options = sfm_options(settings, seed, deterministic)
     pycolmap.set_random_seed(int(seed))
     work_dir = Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)

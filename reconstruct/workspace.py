@@ -13,13 +13,17 @@ import shutil
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 import pycolmap
 
-from reconstruct.rectify import DEFAULT_MAX_AREA_RATIO, rectify_pair
+from reconstruct.rectify import rectify_pair
 from scene.io import write_atomic, write_text_atomic
+
+if TYPE_CHECKING:
+    from reconstruct.dense_settings import DenseSettings
 
 log = logging.getLogger(__name__)
 
@@ -48,11 +52,16 @@ class View:
 
 
 def prepare_workspace(
-    sparse_dir: Path, image_dir: Path, workspace: Path, cfg: Mapping, *, downscale_first: bool = False
+    sparse_dir: Path,
+    image_dir: Path,
+    workspace: Path,
+    settings: DenseSettings,
+    *,
+    downscale_first: bool = False,
 ) -> Path:
     """Undistort the images of the sparse model into a fresh COLMAP dense workspace; return it.
 
-    Images are rescaled so their longest side is at most ``dense.max_image_size`` pixels. A model
+    Images are rescaled so their longest side is at most ``settings.max_image_size`` pixels. A model
     whose cameras are all PINHOLE and no larger than that needs neither: its images are linked
     into the workspace as they are (COLMAP's undistorter would decode and re-encode every one).
     Otherwise COLMAP's undistorter resamples each image at its full size and then downsizes it;
@@ -62,7 +71,7 @@ def prepare_workspace(
     workspace = Path(workspace)
     shutil.rmtree(workspace, ignore_errors=True)
     workspace.parent.mkdir(parents=True, exist_ok=True)
-    max_size = int(cfg["max_image_size"])
+    max_size = settings.max_image_size
     rec = pycolmap.Reconstruction(sparse_dir)
     if all(
         cam.model == pycolmap.CameraModelId.PINHOLE and max(cam.width, cam.height) <= max_size
@@ -214,8 +223,11 @@ def read_views(workspace: Path) -> dict[str, View]:
     return views
 
 
-def select_partners(workspace: Path, views: Mapping[str, View], cfg: Mapping) -> dict[str, list[str]]:
-    """Stereo partners of every view, best first.
+def select_partners(
+    workspace: Path, views: Mapping[str, View], settings: DenseSettings
+) -> dict[str, list[str]]:
+    """Stereo partners of every view, best first (the rules are ``settings``' fields, angles in
+    degrees).
 
     A partner shares at least ``min_shared_points`` sparse points with the reference, its median
     triangulation angle at those points lies in [``min_triangulation_angle_deg``,
@@ -232,14 +244,14 @@ def select_partners(workspace: Path, views: Mapping[str, View], cfg: Mapping) ->
     model.read(str(workspace), "COLMAP")
     shared = model.compute_shared_points()
     angles = model.compute_triangulation_angles(50.0)
-    lo = math.radians(float(cfg["min_triangulation_angle_deg"]))
-    hi = math.radians(float(cfg["max_triangulation_angle_deg"]))
-    min_axis = math.radians(float(cfg["min_baseline_axis_angle_deg"]))
-    min_shared = int(cfg["min_shared_points"])
-    num_partners = int(cfg["num_partners"])
-    ideal = max(math.radians(float(cfg["partner_ideal_angle_deg"])), 1e-6)
-    must_rectify = bool(cfg.get("partners_must_rectify", False))
-    max_area = float(cfg.get("max_rectified_area_ratio", DEFAULT_MAX_AREA_RATIO))
+    lo = math.radians(settings.min_triangulation_angle_deg)
+    hi = math.radians(settings.max_triangulation_angle_deg)
+    min_axis = math.radians(settings.min_baseline_axis_angle_deg)
+    min_shared = settings.min_shared_points
+    num_partners = settings.num_partners
+    ideal = max(math.radians(settings.partner_ideal_angle_deg), 1e-6)
+    must_rectify = settings.partners_must_rectify
+    max_area = settings.max_rectified_area_ratio
     partners: dict[str, list[str]] = {}
     for ref_idx in range(len(shared)):
         ref_name = model.get_image_name(ref_idx)

@@ -7,6 +7,7 @@ no omegaconf, trimesh or open3d: ``python -m pytest -q -m cuda tests/test_dense_
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import cv2
@@ -18,6 +19,7 @@ pycolmap = pytest.importorskip("pycolmap")
 
 from benchmarks.dense_cuda import read_ply_xyz  # noqa: E402
 from reconstruct.dense import fuse  # noqa: E402
+from reconstruct.dense_settings import DenseSettings  # noqa: E402
 from reconstruct.stereo.depth_maps import compute_depth_maps_cpu, compute_depth_maps_cuda  # noqa: E402
 from reconstruct.workspace import prepare_workspace, read_views  # noqa: E402
 from scene.camera import Intrinsics, cam_from_world  # noqa: E402
@@ -31,9 +33,12 @@ HEIGHT = 10.0
 TEXEL_M = 0.02  # texture features span >= 9 px at the 3.4 cm GSD: no aliasing
 
 
-def dense_cfg() -> dict:
-    """The default ``reconstruct.dense`` config (plain YAML: no interpolation in that file)."""
-    return yaml.safe_load(CONFIG.read_text())["dense"]
+def dense_settings(**changes) -> DenseSettings:
+    """The default ``reconstruct.dense`` settings (plain YAML: no interpolation in that file), with
+    ``changes`` to its top-level fields."""
+    return dataclasses.replace(
+        DenseSettings.from_config(yaml.safe_load(CONFIG.read_text())["dense"]), **changes
+    )
 
 
 def noise_texture(size: int, seed: int) -> np.ndarray:
@@ -95,13 +100,13 @@ def test_downsized_workspace_cameras_match_images_and_give_true_depth(tmp_path):
     (COLMAP keeps PINHOLE cameras at the old size); SGBM depths then match the plane."""
     intr = Intrinsics(320, 240, 60.0)
     source, _ = build_plane_workspace(tmp_path / "src", intr)
-    cfg = {**dense_cfg(), "max_image_size": 256, "num_threads": 2}
-    workspace = prepare_workspace(source / "sparse", source / "images", tmp_path / "ws", cfg)
+    settings = dense_settings(max_image_size=256, num_threads=2)
+    workspace = prepare_workspace(source / "sparse", source / "images", tmp_path / "ws", settings)
     camera = pycolmap.Reconstruction(workspace / "sparse").camera(1)
     assert (camera.width, camera.height) == (256, 192)
     assert np.allclose(camera.params, [0.8 * intr.focal_px, 0.8 * intr.focal_px, 128.0, 96.0])
     assert cv2.imread(str(workspace / "images" / "000004.png")).shape == (192, 256, 3)
-    valid_pixels = compute_depth_maps_cpu(workspace, cfg)
+    valid_pixels = compute_depth_maps_cpu(workspace, settings)
     views = read_views(workspace)
     depth_map = pycolmap.DepthMap()
     depth_map.read(workspace / "stereo" / "depth_maps" / "000004.png.geometric.bin")
@@ -120,8 +125,8 @@ def test_patch_match_depth_and_fusion_of_a_textured_plane(tmp_path):
     points as close to it."""
     intr = Intrinsics(320, 240, 60.0)
     workspace, truth = build_plane_workspace(tmp_path / "ws", intr)
-    cfg = dense_cfg()
-    names = compute_depth_maps_cuda(workspace, cfg)
+    settings = dense_settings()
+    names = compute_depth_maps_cuda(workspace, settings)
     assert sorted(names) == sorted(truth)
     views = read_views(workspace)
     for name, exact in truth.items():
@@ -137,7 +142,7 @@ def test_patch_match_depth_and_fusion_of_a_textured_plane(tmp_path):
         assert valid.mean() > 0.85, name
         assert np.median(rel) < 0.001, name
         assert np.percentile(rel, 95) < 0.02, name
-    n_points = fuse(workspace, tmp_path / "fused.ply", cfg, list(truth))
+    n_points = fuse(workspace, tmp_path / "fused.ply", settings, list(truth))
     points = read_ply_xyz(tmp_path / "fused.ply")
     assert n_points == len(points) > 20000
     # Fused points are no worse than the maps they come from (nadir views: depth ~ height).
@@ -157,9 +162,9 @@ def test_reference_views_give_depth_maps_to_a_cover_only(tmp_path):
     serve as their partners."""
     intr = Intrinsics(320, 240, 60.0)
     source, _ = build_plane_workspace(tmp_path / "src", intr)
-    cfg = {**dense_cfg(), "num_threads": 2, "reference_views_per_point": 3, "reference_min_new_points": 1}
-    workspace = prepare_workspace(source / "sparse", source / "images", tmp_path / "ws", cfg)
-    valid_pixels = compute_depth_maps_cpu(workspace, cfg)
+    settings = dense_settings(num_threads=2, reference_views_per_point=3, reference_min_new_points=1)
+    workspace = prepare_workspace(source / "sparse", source / "images", tmp_path / "ws", settings)
+    valid_pixels = compute_depth_maps_cpu(workspace, settings)
     mapped = sorted(name for name, count in valid_pixels.items() if count > 0)
     assert mapped == ["000000.png", "000001.png", "000002.png"]
     assert sorted(p.name for p in (workspace / "stereo" / "depth_maps").iterdir()) == [

@@ -3,6 +3,7 @@ fusion along rays on a box world whose views all have the same quality."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import shutil
 from pathlib import Path
@@ -13,6 +14,7 @@ import pytest
 import trimesh
 
 from reconstruct.dense import fuse
+from reconstruct.dense_settings import FusionSettings, SgbmSettings
 from reconstruct.depth_filter import edge_pixels, geometric_support
 from reconstruct.fusion_support import supported_points
 from reconstruct.oracle import oracle_view
@@ -21,7 +23,7 @@ from reconstruct.stereo_noise import stereo_depth_sigma
 from reconstruct.workspace import View, write_maps
 from scene.camera import Intrinsics, cam_from_world, look_at
 from scene.enclosure import raycasting_scene
-from tests.test_reconstruct import box_world_mesh, reconstruct_cfg
+from tests.test_reconstruct import box_world_mesh, dense_settings, reconstruct_cfg
 from tests.workspaces import shared_point_model
 
 INTR = Intrinsics(320, 240, 60.0)
@@ -90,8 +92,17 @@ def test_the_oracle_noise_is_the_stereo_model_sigma():
 def test_the_oracle_without_a_ground_truth_is_refused_before_any_work(tmp_path):
     from reconstruct.dense import dense_reconstruct
 
-    cfg = reconstruct_cfg(**{"dense.backend": "oracle"}).dense
+    settings = dense_settings(**{"dense.backend": "oracle"})
     with pytest.raises(ValueError, match="backend=oracle needs the ground truth"):
+        dense_reconstruct(tmp_path / "sparse", tmp_path / "images", tmp_path / "out", settings)
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_dense_stage_refuses_a_raw_config_mapping(tmp_path):
+    from reconstruct.dense import dense_reconstruct
+
+    cfg = reconstruct_cfg().dense
+    with pytest.raises(TypeError, match=r"DenseSettings\.from_config"):
         dense_reconstruct(tmp_path / "sparse", tmp_path / "images", tmp_path / "out", cfg)
     assert not (tmp_path / "out").exists()
 
@@ -150,8 +161,8 @@ def fused_error_p90(tmp_path: Path, n_views: int, edge_margin: int, method: str)
         depth = fattened(depth, 3)
         depth[edge_pixels(depth, edge_margin)] = np.nan
         write_maps(workspace, view.name, depth, normals_from_depth(depth, view.K, 5))
-    cfg = reconstruct_cfg(**{"dense.fusion.method": method}).dense
-    fuse(workspace, workspace / "fused.ply", cfg, [v.name for v in views], deterministic=True)
+    settings = dense_settings(**{"dense.fusion.method": method})
+    fuse(workspace, workspace / "fused.ply", settings, [v.name for v in views], deterministic=True)
     cloud = trimesh.load(workspace / "fused.ply").vertices
     sample = cloud[np.random.default_rng(0).choice(len(cloud), min(len(cloud), 20000), replace=False)]
     return float(np.percentile(trimesh.proximity.closest_point(mesh, sample)[1], 90))
@@ -271,10 +282,10 @@ def fused_points_with_one_tilted_normal_map(tmp_path: Path, max_normal_error: fl
         if i == len(views) - 1:
             normals = normals @ turn.T
         write_maps(workspace, view.name, depth, normals)
-    cfg = reconstruct_cfg(
+    settings = dense_settings(
         **{"dense.fusion.max_normal_error": max_normal_error, "dense.fusion.conditioning_ratio": 0.0}
-    ).dense
-    return fuse(workspace, workspace / "fused.ply", cfg, [v.name for v in views], deterministic=True)
+    )
+    return fuse(workspace, workspace / "fused.ply", settings, [v.name for v in views], deterministic=True)
 
 
 def test_normals_off_by_20_deg_confirm_each_other_at_the_default_tolerance(tmp_path):
@@ -302,6 +313,13 @@ def test_the_slant_sigma_is_the_window_depth_spread():
     assert slant_depth_sigma(20.0, 1000.0, 0.0, 3.0) == pytest.approx(0.06 * math.sqrt(0.99) / 0.1)
 
 
+# Fusion along rays with 12 neighbours, three views a point, 1 % depth and 30 deg normal tolerance;
+# no slant term, no gate (max_reproj_error is COLMAP's fusion's only).
+RAY_FUSION = FusionSettings(
+    min_num_pixels=3, max_reproj_error=2.0, max_depth_error=0.01, max_normal_error=30.0, ray_neighbours=12
+)
+
+
 def fused_height_error_of_a_grazing_pixel(tmp_path: Path, slant_px: float) -> tuple[float, float]:
     """A grazing view of the ground (6 m up, 20 deg down, its depth 0.5 % long) and three nadir views
     20 m up, exact; the ground point under the grazing view's pixel (160, 120) is fused along that
@@ -320,10 +338,8 @@ def fused_height_error_of_a_grazing_pixel(tmp_path: Path, slant_px: float) -> tu
         write_maps(workspace, view.name, depth * (1.005 if view is grazing else 1.0), normals)
     names = sorted(views)
     neighbours = {n: [m for m in names if m != n] for n in names}
-    cfg = {"ray_neighbours": 12, "min_num_pixels": 3, "max_depth_error": 0.01, "max_normal_error": 30.0}
-    cloud = fuse_along_rays(
-        workspace, names, views, neighbours, dict.fromkeys(names, 5.0), cfg | {"slant_window_px": slant_px}
-    )
+    fusion = dataclasses.replace(RAY_FUSION, slant_window_px=slant_px)
+    cloud = fuse_along_rays(workspace, names, views, neighbours, dict.fromkeys(names, 5.0), fusion)
     ray = np.array([160.0, 120.0, 1.0]) @ np.linalg.inv(grazing.K).T @ grazing.rotation
     t_true = -grazing.center[2] / ray[2]
     truth = grazing.center + t_true * ray
@@ -376,10 +392,8 @@ def fused_height_with_one_long_view(tmp_path: Path, gate_px: float) -> float:
         write_maps(workspace, view.name, depth * (1.008 if i == 3 else 1.0), normals)
     names = sorted(views)
     neighbours = {n: [m for m in names if m != n] for n in names}
-    cfg = {"ray_neighbours": 12, "min_num_pixels": 3, "max_depth_error": 0.01, "max_normal_error": 30.0}
-    cloud = fuse_along_rays(
-        workspace, names, views, neighbours, dict.fromkeys(names, 50.0), cfg | {"gate_disparity_px": gate_px}
-    )
+    fusion = dataclasses.replace(RAY_FUSION, gate_disparity_px=gate_px)
+    cloud = fuse_along_rays(workspace, names, views, neighbours, dict.fromkeys(names, 50.0), fusion)
     reference = views[names[0]]
     ray = np.array([160.0, 120.0, 1.0]) @ np.linalg.inv(reference.K).T @ reference.rotation
     direction = cloud["points"] - reference.center
@@ -404,13 +418,12 @@ def test_the_oracle_is_fused_by_the_stereo_model_alone():
     # Its depth has the stereo model's noise only, and no matching window: no slant term.
     from reconstruct.dense import fusion_config
 
-    cfg = reconstruct_cfg(**{"dense.fusion.slant_window_px": 3.0}).dense
-    oracle = fusion_config("oracle", cfg)
-    assert oracle["fusion"]["slant_window_px"] == 0.0
-    assert {k: v for k, v in oracle["fusion"].items() if k != "slant_window_px"} == {
-        k: v for k, v in cfg["fusion"].items() if k != "slant_window_px"
-    }
-    assert fusion_config("cpu", cfg)["fusion"]["slant_window_px"] == 3.0
+    settings = dense_settings(**{"dense.fusion.slant_window_px": 3.0})
+    oracle = fusion_config("oracle", settings)
+    assert oracle.fusion.slant_window_px == 0.0
+    assert dataclasses.replace(oracle.fusion, slant_window_px=3.0) == settings.fusion
+    assert dataclasses.replace(oracle, fusion=settings.fusion) == settings
+    assert fusion_config("cpu", settings) is settings
 
 
 # ----------------------------------------------------------------------------- writing the cloud
@@ -453,15 +466,15 @@ def test_a_cloud_the_disk_cannot_hold_leaves_no_file(tmp_path, monkeypatch):
 
 
 # The back-end's SGBM settings (conf/reconstruct/default.yaml) with OpenCV's P1 and P2.
-SGBM = {
-    "block_size": 5,
-    "disp12_max_diff": 1,
-    "uniqueness_ratio": 10,
-    "speckle_window_size": 100,
-    "speckle_range": 2,
-    "p1_per_block_pixel": 8.0,
-    "p2_per_block_pixel": 32.0,
-}
+SGBM = SgbmSettings(
+    block_size=5,
+    disp12_max_diff=1,
+    uniqueness_ratio=10,
+    speckle_window_size=100,
+    speckle_range=2,
+    p1_per_block_pixel=8.0,
+    p2_per_block_pixel=32.0,
+)
 
 
 def slanted_pair_disparity_error(gradient_px_per_row: float, mirror_pass: bool) -> float:
@@ -515,7 +528,7 @@ def foreshortened_pair_held(gradient: float, p1_per_block_pixel: float) -> float
 
     left = noisy(texture[:, 100 : 100 + width])
     right = noisy(cv2.remap(texture, (xs + 20.0) / (1.0 - gradient) + 100, ys, cv2.INTER_LINEAR))
-    settings = {**SGBM, "p1_per_block_pixel": p1_per_block_pixel}
+    settings = dataclasses.replace(SGBM, p1_per_block_pixel=p1_per_block_pixel)
     disparity = sgbm_disparity(sgbm_matcher(settings, 128), left, right, True)
     matched = np.zeros(disparity.shape, bool)
     matched[:, 140:] = True  # past the unmatched first numDisparities columns and the largest shift

@@ -6,6 +6,7 @@ tests depend on nothing but numpy/OpenCV and the reconstruction package itself.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -25,14 +26,16 @@ from omegaconf import OmegaConf
 from reconstruct.align import align_to_gnss, deregister_gnss_outliers, merge_model, pose_errors
 from reconstruct.cache_keys import flight_content_key
 from reconstruct.dense import fuse, fusion_budget_gb, fusion_chunk_size
+from reconstruct.dense_settings import DenseSettings
 from reconstruct.errors import ReconstructionError
 from reconstruct.flight import Flight, read_flight, simulate_gnss
 from reconstruct.fusion_chunks import owning_chunk, plan_chunks, read_visibility
-from reconstruct.pipeline import build_proxy, proxy_flight_config, reconstruct_flight
+from reconstruct.pipeline import build_proxy, reconstruct_flight
 from reconstruct.proxy import degraded_ground_truth, oriented_cloud, poisson_proxy
 from reconstruct.rectify import RectifiedPair, rectify_pair
+from reconstruct.settings import ReconstructSettings, proxy_flight_config
 from reconstruct.sfm import map_reconstruction, pose_prior_pairs, sfm_options, write_pose_priors
-from reconstruct.sfm_settings import COLMAP_ABS_POSE, COLMAP_LOCAL_BA
+from reconstruct.sfm_settings import COLMAP_ABS_POSE, COLMAP_LOCAL_BA, SfmSettings
 from reconstruct.stereo.depth_maps import reference_views
 from reconstruct.stereo.matching import (
     consistent_depth,
@@ -58,6 +61,21 @@ def reconstruct_cfg(**overrides):
     for key, value in overrides.items():
         OmegaConf.update(cfg, key, value, merge=False)
     return cfg
+
+
+def recon_settings(cfg) -> ReconstructSettings:
+    """A ``reconstruct`` mapping typed as the stage takes it."""
+    return ReconstructSettings.from_config(cfg)
+
+
+def sfm_settings(cfg) -> SfmSettings:
+    """The ``sfm`` block of a ``reconstruct`` mapping, typed."""
+    return SfmSettings.from_config(cfg.sfm)
+
+
+def dense_settings(**overrides) -> DenseSettings:
+    """The default ``reconstruct.dense`` settings, typed, with ``reconstruct_cfg``'s dotted-key overrides."""
+    return DenseSettings.from_config(reconstruct_cfg(**overrides).dense)
 
 
 # ----------------------------------------------------------------------------- a ray-cast box world
@@ -318,12 +336,12 @@ def test_a_partner_the_matcher_cannot_rectify_gets_no_slot(tmp_path):
     for view in views:
         cv2.imwrite(str(workspace / "images" / view.name), np.full((intr.height, intr.width), 128, np.uint8))
     by_name = {v.name: v for v in views}
-    former = select_partners(workspace, by_name, reconstruct_cfg().dense)  # the default: angles alone
+    former = select_partners(workspace, by_name, dense_settings())  # the default: angles alone
     assert sorted(former[ref.name]) == [side.name, ahead.name]
-    rectifying = reconstruct_cfg(**{"dense.partners_must_rectify": True}).dense
+    rectifying = dense_settings(**{"dense.partners_must_rectify": True})
     assert select_partners(workspace, by_name, rectifying)[ref.name] == [side.name]
     # A looser canvas limit (the setting) lets the pair back in.
-    rectifying.max_rectified_area_ratio = 8.0
+    rectifying = dataclasses.replace(rectifying, max_rectified_area_ratio=8.0)
     assert sorted(select_partners(workspace, by_name, rectifying)[ref.name]) == [side.name, ahead.name]
 
 
@@ -358,8 +376,8 @@ def textured_plane_pair(partner_xy: tuple[float, float]):
 def test_sgbm_pair_depth_of_a_textured_plane():
     """Rectification + SGBM + back-projection recover a plane's depth from a sideways pair."""
     ref, src, images, points = textured_plane_pair((3.0, 1.0))
-    cfg = reconstruct_cfg().dense
-    depth = pair_depth(ref, src, images[0], images[1], points, cfg)
+    settings = dense_settings()
+    depth = pair_depth(ref, src, images[0], images[1], points, settings)
     truth = plane_depth(ref, 0.0)
     valid = np.isfinite(depth)
     # The partner sees about 3/4 of the reference at this baseline.
@@ -393,10 +411,11 @@ def test_matching_the_window_keeps_the_depth_of_the_whole_canvas():
     third of the canvas is empty. Matching only the window that can match gives the same depth at
     all but a few pixels."""
     ref, src, images, points = textured_plane_pair((2.5, 2.5))
-    cfg = reconstruct_cfg().dense
-    assert cfg.sgbm.crop_to_overlap
-    whole = pair_depth(ref, src, *images, points, OmegaConf.merge(cfg, {"sgbm": {"crop_to_overlap": False}}))
-    cropped = pair_depth(ref, src, *images, points, cfg)
+    settings = dense_settings()
+    assert settings.sgbm.crop_to_overlap
+    uncropped = dataclasses.replace(settings, sgbm=dataclasses.replace(settings.sgbm, crop_to_overlap=False))
+    whole = pair_depth(ref, src, *images, points, uncropped)
+    cropped = pair_depth(ref, src, *images, points, settings)
     has_whole, has_cropped = np.isfinite(whole), np.isfinite(cropped)
     assert has_whole.mean() > 0.5
     assert (has_whole != has_cropped).mean() < 0.002
@@ -417,13 +436,13 @@ def test_sgbm_gives_the_uniform_sky_no_depth():
     ref, src, images, points = textured_plane_pair((3.0, 1.0))
     for image in images:
         image[:100] = 200  # the top 100 rows of both views: sky
-    cfg = reconstruct_cfg().dense
-    assert cfg.min_texture_std > 0
+    settings = dense_settings()
+    assert settings.min_texture_std > 0
     unmasked = pair_depth(
-        ref, src, images[0], images[1], points, OmegaConf.merge(cfg, {"min_texture_std": 0})
+        ref, src, images[0], images[1], points, dataclasses.replace(settings, min_texture_std=0.0)
     )
-    depth = pair_depth(ref, src, images[0], images[1], points, cfg)
-    sky, plane = slice(0, 100 - cfg.texture_window_px), slice(100 + cfg.texture_window_px, None)
+    depth = pair_depth(ref, src, images[0], images[1], points, settings)
+    sky, plane = slice(0, 100 - settings.texture_window_px), slice(100 + settings.texture_window_px, None)
     assert np.isfinite(unmasked[sky]).mean() > 0.5  # the defect the mask exists for
     assert not np.isfinite(depth[sky]).any()
     assert np.isfinite(depth[plane]).mean() == pytest.approx(np.isfinite(unmasked[plane]).mean(), abs=0.02)
@@ -431,7 +450,11 @@ def test_sgbm_gives_the_uniform_sky_no_depth():
     truth = plane_depth(ref, 0.0)[plane]
     assert np.median(np.abs(depth[plane][valid] - truth[valid]) / truth[valid]) < 0.002
     with pytest.raises(ValueError, match="min_texture_std"):
-        pair_depth(ref, src, images[0], images[1], points, OmegaConf.merge(cfg, {"min_texture_std": -1}))
+        DenseSettings.from_config(reconstruct_cfg(**{"dense.min_texture_std": -1}).dense)
+    with pytest.raises(ValueError, match="min_texture_std"):  # settings built around the check
+        pair_depth(
+            ref, src, images[0], images[1], points, dataclasses.replace(settings, min_texture_std=-1.0)
+        )
 
 
 def test_textured_pixels_by_local_deviation():
@@ -470,7 +493,7 @@ def test_fusion_of_plane_depth_maps_lies_on_the_plane(tmp_path):
         write_maps(workspace, view.name, depth, normals_from_depth(depth, view.K, window=5))
     (workspace / "sparse").mkdir()
     rec.write(workspace / "sparse")
-    n_points = fuse(workspace, tmp_path / "fused.ply", reconstruct_cfg().dense, [v.name for v in views])
+    n_points = fuse(workspace, tmp_path / "fused.ply", dense_settings(), [v.name for v in views])
     import open3d as o3d
 
     cloud = o3d.io.read_point_cloud(str(tmp_path / "fused.ply"))
@@ -527,8 +550,12 @@ def test_mapping_and_alignment_on_a_synthetic_dataset(tmp_path):
     cfg = reconstruct_cfg(**{"sfm.mapping.use_prior_position": False})
     for method in ("incremental", "global"):
         cfg.sfm.mapping.method = method
-        rec = map_reconstruction(database_path, tmp_path, sfm_options(cfg.sfm, seed=0))[0]
-        align_to_gnss(rec, flight.names, gnss, sigma, cfg.align, seed=0)
+        rec = map_reconstruction(
+            database_path,
+            tmp_path,
+            sfm_options(sfm_settings(cfg), seed=0),
+        )[0]
+        align_to_gnss(rec, flight.names, gnss, sigma, recon_settings(cfg).align, seed=0)
         errors = pose_errors(rec, flight)
         assert errors["n_registered"] == 30, method
         # 30 noisy positions fix the 7 similarity parameters: the aligned cameras are much closer to
@@ -577,11 +604,15 @@ def test_a_weakly_linked_image_registers_at_the_survey_threshold(tmp_path):
     registered = {}
     for label, overrides in (("colmap", colmap), ("default", {})):
         cfg = reconstruct_cfg(**{"sfm.mapping.use_prior_position": False, **overrides})
-        models = map_reconstruction(database_path, tmp_path, sfm_options(cfg.sfm, seed=0, deterministic=True))
+        models = map_reconstruction(
+            database_path,
+            tmp_path,
+            sfm_options(sfm_settings(cfg), seed=0, deterministic=True),
+        )
         registered[label] = weak in set(models[0].reg_image_ids())
         if label == "default":
             assert models[0].num_reg_images() == 30
-            align_to_gnss(models[0], flight.names, flight.positions, sigma, cfg.align, seed=0)
+            align_to_gnss(models[0], flight.names, flight.positions, sigma, recon_settings(cfg).align, seed=0)
             errors = pose_errors(models[0], flight)
             # The synthetic matches are exact: every camera, the weak one too, lands on its pose.
             assert errors["position_error_max_m"] < 1e-3 * float(np.ptp(flight.positions, axis=0).max())
@@ -589,9 +620,9 @@ def test_a_weakly_linked_image_registers_at_the_survey_threshold(tmp_path):
     assert registered == {"colmap": False, "default": True}
     # P3P needs 4 points; a share is a fraction.
     with pytest.raises(ValueError, match="abs_pose_min_num_inliers must be >= 4"):
-        sfm_options(reconstruct_cfg(**{"sfm.mapping.abs_pose_min_num_inliers": 3}).sfm)
+        sfm_options(sfm_settings(reconstruct_cfg(**{"sfm.mapping.abs_pose_min_num_inliers": 3})))
     with pytest.raises(ValueError, match="abs_pose_min_inlier_ratio must be"):
-        sfm_options(reconstruct_cfg(**{"sfm.mapping.abs_pose_min_inlier_ratio": 0.0}).sfm)
+        sfm_options(sfm_settings(reconstruct_cfg(**{"sfm.mapping.abs_pose_min_inlier_ratio": 0.0})))
 
 
 @pytest.fixture(scope="module")
@@ -605,7 +636,7 @@ def box_flight(tmp_path_factory):
 @pytest.fixture(scope="module")
 def box_reconstruction(box_flight, tmp_path_factory):
     out_dir = tmp_path_factory.mktemp("recon")
-    return out_dir, reconstruct_flight(box_flight, out_dir, reconstruct_cfg(), seed=0)
+    return out_dir, reconstruct_flight(box_flight, out_dir, recon_settings(reconstruct_cfg()), seed=0)
 
 
 def test_reconstruct_flight_registers_aligns_and_densifies(box_reconstruction):
@@ -653,7 +684,7 @@ def test_a_flight_split_in_two_models_is_georeferenced_and_merged(tmp_path):
     flight = write_box_world_flight(tmp_path / "flight", viewpoints, intr, seed=np.repeat([3, 4], 16))
     # RTK fixes of 2 cm: each half-ring's similarity comes from its own 16 fixes only.
     cfg = reconstruct_cfg(**{"gnss.sigma_m": 0.02})
-    record = reconstruct_flight(flight, tmp_path / "recon", cfg, seed=0)
+    record = reconstruct_flight(flight, tmp_path / "recon", recon_settings(cfg), seed=0)
     assert record["n_models"] == 2 and record["model_sizes"] == "16+16"
     assert record["n_models_merged"] == 1 and record["n_images_merged"] == 16
     assert record["n_images_dropped"] == 0
@@ -678,7 +709,7 @@ def test_a_flight_split_in_two_models_is_georeferenced_and_merged(tmp_path):
     dropped = reconstruct_flight(
         flight,
         tmp_path / "recon_dropped",
-        reconstruct_cfg(**{"gnss.sigma_m": 0.02, "align.merge_min_images": 17}),
+        recon_settings(reconstruct_cfg(**{"gnss.sigma_m": 0.02, "align.merge_min_images": 17})),
         seed=0,
     )
     assert dropped["n_models_merged"] == 0 and dropped["n_images_dropped"] == 16
@@ -686,12 +717,14 @@ def test_a_flight_split_in_two_models_is_georeferenced_and_merged(tmp_path):
 
 
 def test_prior_position_settings_reach_the_mapper():
-    options = sfm_options(reconstruct_cfg().sfm)
+    options = sfm_options(sfm_settings(reconstruct_cfg()))
     assert options.incremental.use_prior_position and options.incremental.use_robust_loss_on_prior_position
-    strict = sfm_options(reconstruct_cfg(**{"sfm.mapping.robust_loss_on_prior_position": False}).sfm)
+    strict = sfm_options(
+        sfm_settings(reconstruct_cfg(**{"sfm.mapping.robust_loss_on_prior_position": False}))
+    )
     assert strict.incremental.use_prior_position and not strict.incremental.use_robust_loss_on_prior_position
     # No priors at all: no robust loss on them either.
-    none = sfm_options(reconstruct_cfg(**{"sfm.mapping.use_prior_position": False}).sfm)
+    none = sfm_options(sfm_settings(reconstruct_cfg(**{"sfm.mapping.use_prior_position": False})))
     assert not none.incremental.use_prior_position and not none.incremental.use_robust_loss_on_prior_position
 
 
@@ -707,14 +740,22 @@ def test_global_mapper_models_come_back_in_the_gnss_frame_with_the_prior_ba(tmp_
     write_pose_priors(database_path, names, gnss, sigma)
     gnss_error_median = float(np.median(np.linalg.norm(gnss - positions, axis=1)))
     cfg = reconstruct_cfg(**{"sfm.mapping.method": "global"})
-    rec = map_reconstruction(database_path, tmp_path, sfm_options(cfg.sfm, seed=0))[0]
+    rec = map_reconstruction(
+        database_path,
+        tmp_path,
+        sfm_options(sfm_settings(cfg), seed=0),
+    )[0]
     assert rec.num_reg_images() == 30
     centre = {rec.image(i).name: rec.image(i).projection_center() for i in rec.reg_image_ids()}
     error = np.linalg.norm(np.array([centre[n] for n in names]) - positions, axis=1)
     assert np.median(error) < 0.5 * gnss_error_median
     # Without it the model stays in the mapper's own frame, nowhere near the fixes.
     cfg.sfm.mapping.global_prior_ba = False
-    raw = map_reconstruction(database_path, tmp_path, sfm_options(cfg.sfm, seed=0))[0]
+    raw = map_reconstruction(
+        database_path,
+        tmp_path,
+        sfm_options(sfm_settings(cfg), seed=0),
+    )[0]
     centre = {raw.image(i).name: raw.image(i).projection_center() for i in raw.reg_image_ids()}
     assert np.median(np.linalg.norm(np.array([centre[n] for n in names]) - positions, axis=1)) > 10 * sigma
 
@@ -757,6 +798,13 @@ def test_a_fused_point_belongs_to_the_chunk_owning_most_of_its_views(tmp_path):
 COLMAP_FUSION = {"dense.fusion.check_num_images": 6, "dense.fusion.method": "colmap"}
 
 
+def with_fusion_budget(settings: DenseSettings, max_memory_gb: float) -> DenseSettings:
+    """``settings`` with ``fusion.max_memory_gb`` (GB) replaced."""
+    return dataclasses.replace(
+        settings, fusion=dataclasses.replace(settings.fusion, max_memory_gb=max_memory_gb)
+    )
+
+
 def test_an_auto_fusion_budget_chunks_to_the_memory_free(box_reconstruction, tmp_path, monkeypatch):
     """``max_memory_gb: auto`` is half the memory free: with 33 views' worth free, 16 a chunk."""
     import psutil
@@ -770,14 +818,14 @@ def test_an_auto_fusion_budget_chunks_to_the_memory_free(box_reconstruction, tmp
     free = type("Free", (), {"available": 33.5 * view_bytes})()
     monkeypatch.setattr(psutil, "virtual_memory", lambda: free)
     # COLMAP's fusion (the proxy's) holds every view and chunks; the ray fusion holds a few.
-    cfg = reconstruct_cfg(**COLMAP_FUSION).dense
+    settings = dense_settings(**COLMAP_FUSION)
     assert fusion_chunk_size(workspace, names, fusion_budget_gb("auto")) == 16
-    report = fuse_report(workspace, tmp_path / "auto.ply", cfg, names, deterministic=True)
+    report = fuse_report(workspace, tmp_path / "auto.ply", settings, names, deterministic=True)
     assert report.n_chunks >= 3 and report.max_memory_gb == pytest.approx(0.5 * 33.5 * view_bytes / 1e9)
     single = fuse(
         workspace,
         tmp_path / "one.ply",
-        reconstruct_cfg(**{**COLMAP_FUSION, "dense.fusion.max_memory_gb": None}).dense,
+        dense_settings(**{**COLMAP_FUSION, "dense.fusion.max_memory_gb": None}),
         names,
         deterministic=True,
     )
@@ -791,15 +839,15 @@ def test_fusion_in_chunks_covers_the_single_pass_cloud(box_reconstruction, tmp_p
     out_dir, _ = box_reconstruction
     workspace = out_dir / "dense"
     names = sorted(p.name for p in (workspace / "images").iterdir())
-    cfg = reconstruct_cfg(**COLMAP_FUSION).dense
+    settings = dense_settings(**COLMAP_FUSION)
     # The default budget, half the memory free (auto), holds these 33 small views at once.
-    assert cfg.fusion.max_memory_gb == "auto"
+    assert settings.fusion.max_memory_gb == "auto"
     assert fusion_chunk_size(workspace, names, fusion_budget_gb("auto")) is None
-    single = fuse(workspace, tmp_path / "single.ply", cfg, names, deterministic=True)
+    single = fuse(workspace, tmp_path / "single.ply", settings, names, deterministic=True)
     view_gb = 20 * 320 * 240 / 1e9  # image, depth, normal and mask bytes of one 320 x 240 view
-    cfg.fusion.max_memory_gb = 16.5 * view_gb
-    assert fusion_chunk_size(workspace, names, cfg.fusion.max_memory_gb) == 16
-    chunked = fuse(workspace, tmp_path / "chunked.ply", cfg, names, deterministic=True)
+    settings = with_fusion_budget(settings, 16.5 * view_gb)
+    assert fusion_chunk_size(workspace, names, settings.fusion.max_memory_gb) == 16
+    chunked = fuse(workspace, tmp_path / "chunked.ply", settings, names, deterministic=True)
     a = trimesh.load(tmp_path / "single.ply").vertices
     b = trimesh.load(tmp_path / "chunked.ply").vertices
     assert (len(a), len(b)) == (single, chunked)
@@ -811,25 +859,26 @@ def test_fusion_in_chunks_covers_the_single_pass_cloud(box_reconstruction, tmp_p
     # And the chunked points are as close to the true boxes (90 % within 2 GSD, as one pass).
     sample = b[np.random.default_rng(0).choice(len(b), 20000, replace=False)]
     assert np.percentile(trimesh.proximity.closest_point(box_world_mesh(), sample)[1], 90) < 0.08
-    cfg.fusion.max_memory_gb = 1.5 * view_gb
     with pytest.raises(ValueError, match="holds fewer than two views"):
-        fuse(workspace, tmp_path / "none.ply", cfg, names)
+        fuse(workspace, tmp_path / "none.ply", with_fusion_budget(settings, 1.5 * view_gb), names)
 
 
 def test_global_ba_schedule_reaches_the_mapper():
-    options = sfm_options(reconstruct_cfg().sfm).incremental
+    options = sfm_options(sfm_settings(reconstruct_cfg())).incremental
     assert (options.ba_global_frames_ratio, options.ba_global_points_ratio) == (1.3, 1.3)
     assert options.ba_global_max_num_iterations == 25
     assert not options.mapper.ba_global_ignore_redundant_points3D
-    skip = sfm_options(reconstruct_cfg(**{"sfm.mapping.global_ba_skip_redundant_points": True}).sfm)
+    skip = sfm_options(sfm_settings(reconstruct_cfg(**{"sfm.mapping.global_ba_skip_redundant_points": True})))
     assert skip.incremental.mapper.ba_global_ignore_redundant_points3D
     with pytest.raises(ValueError, match="global_ba_growth_ratio must be > 1"):
-        sfm_options(reconstruct_cfg(**{"sfm.mapping.global_ba_growth_ratio": 1.0}).sfm)
+        sfm_options(sfm_settings(reconstruct_cfg(**{"sfm.mapping.global_ba_growth_ratio": 1.0})))
     rounds = "sfm.mapping.global_ba_max_refinements"
     assert options.ba_global_max_refinements == reconstruct_cfg().sfm.mapping.global_ba_max_refinements
-    assert sfm_options(reconstruct_cfg(**{rounds: 2}).sfm).incremental.ba_global_max_refinements == 2
+    assert (
+        sfm_options(sfm_settings(reconstruct_cfg(**{rounds: 2}))).incremental.ba_global_max_refinements == 2
+    )
     with pytest.raises(ValueError, match="global_ba_max_refinements must be >= 1"):
-        sfm_options(reconstruct_cfg(**{rounds: 0}).sfm)
+        sfm_options(sfm_settings(reconstruct_cfg(**{rounds: 0})))
     # The local BA after each registration: 4 images, 10 iterations, 1 round by default; COLMAP's
     # 6, 25, 2 one setting away.
     local = (
@@ -839,7 +888,9 @@ def test_global_ba_schedule_reaches_the_mapper():
     )
     assert local == (4, 10, 1)
     colmap = sfm_options(
-        reconstruct_cfg(**{f"sfm.mapping.{k}": v for k, v in COLMAP_LOCAL_BA.items()}).sfm
+        SfmSettings.from_config(
+            reconstruct_cfg(**{f"sfm.mapping.{k}": v for k, v in COLMAP_LOCAL_BA.items()}).sfm
+        )
     ).incremental
     assert (
         colmap.mapper.ba_local_num_images,
@@ -847,7 +898,7 @@ def test_global_ba_schedule_reaches_the_mapper():
         colmap.ba_local_max_refinements,
     ) == (6, 25, 2)
     with pytest.raises(ValueError, match="local_ba_num_images must be >= 1"):
-        sfm_options(reconstruct_cfg(**{"sfm.mapping.local_ba_num_images": 0}).sfm)
+        sfm_options(sfm_settings(reconstruct_cfg(**{"sfm.mapping.local_ba_num_images": 0})))
 
 
 def test_pose_prior_pairs_skip_views_back_to_back():
@@ -867,7 +918,7 @@ def test_pose_prior_pairs_skip_views_back_to_back():
 
 def test_pose_prior_matching_registers_the_box_flight(box_flight, tmp_path):
     cfg = reconstruct_cfg(**{"sfm.matching.method": "pose_prior", "sfm.matching.pose_prior_max_neighbors": 8})
-    record = reconstruct_flight(box_flight, tmp_path / "recon", cfg, seed=0)
+    record = reconstruct_flight(box_flight, tmp_path / "recon", recon_settings(cfg), seed=0)
     assert record["matching_method"] == "pose_prior"
     # 33 views, at most 8 neighbours each: fewer than the 528 exhaustive pairs, all registered.
     assert 33 * 8 / 2 <= record["n_image_pairs"] <= 33 * 8
@@ -880,7 +931,7 @@ def test_the_prior_check_drops_only_spurious_pairs_of_the_box_flight(box_flight,
     deg off the true ones: 30 of the 528 exhaustive pairs at seed 0). The check drops those and no
     view is lost: all 33 register as accurately as without it."""
     cfg = reconstruct_cfg(**{"sfm.matching.prior_check.enabled": True})
-    record = reconstruct_flight(box_flight, tmp_path / "recon", cfg, seed=0)
+    record = reconstruct_flight(box_flight, tmp_path / "recon", recon_settings(cfg), seed=0)
     assert 0 < record["n_pairs_rejected_by_priors"] <= 0.1 * record["n_image_pairs"]
     assert record["n_registered"] == 33
     assert record["position_error_median_m"] < 0.05
@@ -902,11 +953,16 @@ def test_stage_time_counts_threads_and_children():
     assert clock.cpu_s <= os.cpu_count() * clock.wall_s + 0.02
 
 
+def image_size_settings(max_image_size: int) -> DenseSettings:
+    """The default dense settings with ``max_image_size`` (px, longest side)."""
+    return dataclasses.replace(dense_settings(), max_image_size=max_image_size)
+
+
 def test_downsized_workspace_cameras_match_their_images(box_flight, box_reconstruction, tmp_path):
     """The undistorter downsizes images to max_image_size; the workspace's cameras must follow."""
     _, record = box_reconstruction
     workspace = prepare_workspace(
-        Path(record["sparse_dir"]), box_flight, tmp_path / "ws", {"max_image_size": 200}
+        Path(record["sparse_dir"]), box_flight, tmp_path / "ws", image_size_settings(200)
     )
     rec = pycolmap.Reconstruction(workspace / "sparse")
     focal_320 = Intrinsics(320, 240, 60.0).focal_px
@@ -925,7 +981,7 @@ def test_full_size_pinhole_workspace_is_linked_and_equals_the_undistorters(
     config and pixels as COLMAP's undistorter writes (bar the border it blacks out)."""
     _, record = box_reconstruction
     sparse = Path(record["sparse_dir"])
-    linked = prepare_workspace(sparse, box_flight, tmp_path / "linked", {"max_image_size": 1024})
+    linked = prepare_workspace(sparse, box_flight, tmp_path / "linked", image_size_settings(1024))
     options = pycolmap.UndistortCameraOptions()
     options.max_image_size = 1024
     pycolmap.undistort_images(
@@ -988,8 +1044,10 @@ def test_downscaled_workspace_undistorts_a_lens_like_colmaps_undistorter(
     sparse.mkdir()
     rec.write(sparse)
 
-    ours = prepare_workspace(sparse, photos, tmp_path / "ours", {"max_image_size": 200}, downscale_first=True)
-    colmap = prepare_workspace(sparse, photos, tmp_path / "colmap", {"max_image_size": 200})
+    ours = prepare_workspace(
+        sparse, photos, tmp_path / "ours", image_size_settings(200), downscale_first=True
+    )
+    colmap = prepare_workspace(sparse, photos, tmp_path / "colmap", image_size_settings(200))
     a, b = (pycolmap.Reconstruction(ws / "sparse") for ws in (ours, colmap))
     assert a.camera(camera_id).model == pycolmap.CameraModelId.PINHOLE
     assert (a.camera(camera_id).width, a.camera(camera_id).height) == (
@@ -1029,7 +1087,7 @@ def test_downscaled_workspace_undistorts_a_lens_like_colmaps_undistorter(
 
 def test_reconstruct_flight_reuses_unchanged_outputs(box_flight, box_reconstruction):
     out_dir, record = box_reconstruction
-    again = reconstruct_flight(box_flight, out_dir, reconstruct_cfg(), seed=0)
+    again = reconstruct_flight(box_flight, out_dir, recon_settings(reconstruct_cfg()), seed=0)
     assert again["cached"] is True
     assert again["content_key"] == record["content_key"]
     assert again["position_error_median_m"] == record["position_error_median_m"]
@@ -1134,7 +1192,7 @@ def test_a_run_killed_after_sfm_resumes_from_its_sparse_model(box_flight, box_re
     stage = json.loads((killed / "sfm.json").read_text())
     assert stage["content_key"] == record["content_key"] and "dense_time_s" not in stage
 
-    resumed = reconstruct_flight(box_flight, killed, reconstruct_cfg(), seed=0)
+    resumed = reconstruct_flight(box_flight, killed, recon_settings(reconstruct_cfg()), seed=0)
     assert resumed["resumed_after_sfm"] is True and resumed["cached"] is False
     # SfM's record is the first run's (its times included), the sparse model untouched.
     for key in ("n_registered", "position_error_median_m", "mapping_time_s", "align_cpu_s", "n_image_pairs"):
@@ -1149,7 +1207,7 @@ def test_a_run_killed_after_sfm_resumes_from_its_sparse_model(box_flight, box_re
     other = tmp_path / "other_seed"
     shutil.copytree(killed, other)
     (other / "recon.json").unlink()
-    again = reconstruct_flight(box_flight, other, reconstruct_cfg(), seed=1)
+    again = reconstruct_flight(box_flight, other, recon_settings(reconstruct_cfg()), seed=1)
     assert "resumed_after_sfm" not in again
     assert json.loads((other / "sfm.json").read_text())["content_key"] == again["content_key"]
     assert again["content_key"] != record["content_key"]
@@ -1159,10 +1217,10 @@ def test_build_proxy_covers_the_boxes_and_refuses_partial_models(box_flight, box
     out_dir, _ = box_reconstruction
     # No proxy-only dense settings: the exploratory flight's reconstruction is the fixture's, reused.
     cfg = reconstruct_cfg(**{"proxy.face_budget": 20000, "proxy.dense": {}})
-    mesh, record = build_proxy(box_flight, out_dir, cfg, seed=0)
+    mesh, record = build_proxy(box_flight, out_dir, recon_settings(cfg), seed=0)
     assert record["cached"] is True and record["proxy_cached"] is False
     assert len(mesh.faces) <= 20000
-    again, record2 = build_proxy(box_flight, out_dir, cfg, seed=0)
+    again, record2 = build_proxy(box_flight, out_dir, recon_settings(cfg), seed=0)
     assert record2["proxy_cached"] is True and len(again.faces) == len(mesh.faces)
     # The big box's walls and roof: most of the true surface lies within 15 cm of the proxy.
     lo, hi = np.array(BOXES[0][0]), np.array(BOXES[0][1])
@@ -1179,7 +1237,7 @@ def test_build_proxy_covers_the_boxes_and_refuses_partial_models(box_flight, box
 
     strict = reconstruct_cfg(**{"proxy.min_registered_fraction": 1.01, "proxy.dense": {}})
     with pytest.raises(ReconstructionError, match="partial model") as info:
-        build_proxy(box_flight, out_dir, strict, seed=0)
+        build_proxy(box_flight, out_dir, recon_settings(strict), seed=0)
     assert info.value.record["status"] == "failed"
     assert info.value.record["registered_fraction"] == 1.0
 
@@ -1188,9 +1246,9 @@ def test_build_proxy_cuts_to_the_region_of_interest(box_flight, box_reconstructi
     out_dir, _ = box_reconstruction
     roi = Box(BOXES[0][0], BOXES[0][1])  # the big box: the survey's site
     uncut = reconstruct_cfg(**{"proxy.dense": {}, "proxy.roi_margin_m": None})
-    whole, _ = build_proxy(box_flight, out_dir, uncut, seed=0, roi=roi)
+    whole, _ = build_proxy(box_flight, out_dir, recon_settings(uncut), seed=0, roi=roi)
     cfg = reconstruct_cfg(**{"proxy.dense": {}, "proxy.roi_margin_m": 0.5})
-    cut, record = build_proxy(box_flight, out_dir, cfg, seed=0, roi=roi)
+    cut, record = build_proxy(box_flight, out_dir, recon_settings(cfg), seed=0, roi=roi)
     assert record["proxy_cached"] is False
     lo, hi = np.array(roi.lo[:2]) - 0.5, np.array(roi.hi[:2]) + 0.5
     tol = cfg.proxy.voxel_size_m + 1e-6  # the Poisson mesh is cut to the cropped cloud's box + 1 voxel
@@ -1263,13 +1321,17 @@ def test_failures_carry_a_record(tmp_path):
     cfg = reconstruct_cfg()
     flat = [np.full((96, 128), 128, np.uint8) for _ in range(2)]
     with pytest.raises(ReconstructionError, match="at least 3") as info:
-        reconstruct_flight(_flight_of_images(tmp_path / "two", flat, intr), tmp_path / "out_two", cfg, 0)
+        reconstruct_flight(
+            _flight_of_images(tmp_path / "two", flat, intr), tmp_path / "out_two", recon_settings(cfg), 0
+        )
     assert info.value.record["status"] == "failed" and info.value.record["stage"] == "input"
     assert info.value.record["n_images"] == 2
 
     flat = [np.full((96, 128), 128, np.uint8) for _ in range(4)]
     with pytest.raises(ReconstructionError, match="SIFT features") as info:
-        reconstruct_flight(_flight_of_images(tmp_path / "flat", flat, intr), tmp_path / "out_flat", cfg, 0)
+        reconstruct_flight(
+            _flight_of_images(tmp_path / "flat", flat, intr), tmp_path / "out_flat", recon_settings(cfg), 0
+        )
     assert info.value.record["stage"] == "extraction"
     assert info.value.record["registered_fraction"] == 0.0
     stored = json.loads((tmp_path / "out_flat" / "recon.json").read_text())
@@ -1279,7 +1341,9 @@ def test_failures_carry_a_record(tmp_path):
     rng = np.random.default_rng(0)
     noise = [cv2.GaussianBlur(rng.integers(0, 255, (96, 128), dtype=np.uint8), (3, 3), 0) for _ in range(4)]
     with pytest.raises(ReconstructionError) as info:
-        reconstruct_flight(_flight_of_images(tmp_path / "noise", noise, intr), tmp_path / "out_noise", cfg, 0)
+        reconstruct_flight(
+            _flight_of_images(tmp_path / "noise", noise, intr), tmp_path / "out_noise", recon_settings(cfg), 0
+        )
     assert info.value.record["stage"] == "mapping"
     assert info.value.record["registered_fraction"] < cfg.min_registered_fraction
 
@@ -1299,7 +1363,9 @@ def test_poisson_proxy_of_a_sampled_box(tmp_path):
     cloud.normals = o3d.utility.Vector3dVector(world.face_normals[faces[keep]])
     o3d.io.write_point_cloud(str(tmp_path / "cloud.ply"), cloud)
     cfg = reconstruct_cfg(**{"proxy.face_budget": 5000, "proxy.voxel_size_m": 0.03, "proxy.poisson_depth": 8})
-    mesh = poisson_proxy(tmp_path / "cloud.ply", Box((-4.5, -4.5, -1.0), (4.5, 4.5, 5.0)), cfg)
+    mesh = poisson_proxy(
+        tmp_path / "cloud.ply", Box((-4.5, -4.5, -1.0), (4.5, 4.5, 5.0)), recon_settings(cfg).proxy
+    )
     assert len(mesh.faces) <= 5000
     on_box = trimesh.sample.sample_surface_even(box, 3000, seed=1)[0]
     on_box = on_box[on_box[:, 2] > 0.05]
@@ -1346,15 +1412,17 @@ def test_degraded_ground_truth_is_cropped_decimated_and_noised():
         evaluation_region=Box((-7.0, -8.0, -0.5), (7.0, 8.0, 4.0)),
     )
     cfg = reconstruct_cfg(**{"proxy.face_budget": 2000, "proxy.degraded.noise_sigma_m": 0.05})
-    mesh = degraded_ground_truth(scene, cfg, seed=0)
+    mesh = degraded_ground_truth(scene, recon_settings(cfg).proxy, seed=0)
     assert 1000 < len(mesh.faces) <= 2000
     assert np.all(mesh.bounds[0] > [-7.5, -8.5, -0.5]) and np.all(mesh.bounds[1] < [7.5, 8.5, 3.5])
     distance = trimesh.proximity.closest_point(scene.ground_truth_mesh, mesh.vertices)[1]
     # |N(0, 0.05)| has median 0.0337 m.
     assert np.median(distance) == pytest.approx(0.0337, rel=0.2)
-    again = degraded_ground_truth(scene, cfg, seed=0)
+    again = degraded_ground_truth(scene, recon_settings(cfg).proxy, seed=0)
     assert np.array_equal(again.vertices, mesh.vertices)
-    exact = degraded_ground_truth(scene, reconstruct_cfg(**{"proxy.degraded.noise_sigma_m": 0.0}), seed=0)
+    exact = degraded_ground_truth(
+        scene, recon_settings(reconstruct_cfg(**{"proxy.degraded.noise_sigma_m": 0.0})).proxy, seed=0
+    )
     assert trimesh.proximity.closest_point(scene.ground_truth_mesh, exact.vertices)[1].max() < 1e-6
 
 
@@ -1409,12 +1477,12 @@ def test_flight_key_ignores_render_timings_but_not_poses_or_pixels(box_flight, t
 def test_dense_workspace_can_be_dropped_without_changing_the_key(box_flight, box_reconstruction, tmp_path):
     _, kept = box_reconstruction
     cfg = reconstruct_cfg(keep_dense_workspace=False)
-    record = reconstruct_flight(box_flight, tmp_path, cfg, seed=0)
+    record = reconstruct_flight(box_flight, tmp_path, recon_settings(cfg), seed=0)
     assert not (tmp_path / "dense").exists() and (tmp_path / "dense.ply").is_file()
     assert record["dense_workspace_freed_mb"] > 1.0  # 33 views of depth + normal maps
     assert record["content_key"] == kept["content_key"]
     assert record["n_registered"] == kept["n_registered"] == 33
-    assert reconstruct_flight(box_flight, tmp_path, cfg, seed=0)["cached"] is True
+    assert reconstruct_flight(box_flight, tmp_path, recon_settings(cfg), seed=0)["cached"] is True
 
 
 def _model_state(sparse_dir: Path) -> tuple:
@@ -1432,7 +1500,7 @@ def test_deterministic_mode_reconstructs_a_flight_twice_to_the_bit(box_flight, t
     states, clouds, proxies = [], [], []
     for attempt in range(2):
         out_dir = tmp_path / f"attempt{attempt}"
-        mesh, record = build_proxy(box_flight, out_dir, cfg, seed=0)
+        mesh, record = build_proxy(box_flight, out_dir, recon_settings(cfg), seed=0)
         assert record["deterministic"] is True and record["cached"] is False
         states.append(_model_state(out_dir / "sparse"))
         clouds.append((out_dir / "dense.ply").read_bytes())

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -60,10 +61,23 @@ def composed(*overrides: str):
         (["reconstruct.dense.fusion.gate_disparity_px=-1"], "reconstruct.dense.fusion.gate_disparity_px"),
         (["reconstruct.dense.fusion.gate_disparity_px=nan"], "reconstruct.dense.fusion.gate_disparity_px"),
         (["survey.flight_order=alphabetical"], "survey.flight_order"),
+        (["reconstruct.proxy.source=guess"], "reconstruct.proxy.source must be one of"),
+        (["reconstruct.proxy.density_quantile=1.0"], "reconstruct.proxy.density_quantile must lie in [0, 1)"),
+        (["reconstruct.proxy.degraded.max_edge_m=0"], "reconstruct.proxy.degraded.max_edge_m must be > 0"),
+        (["reconstruct.align.merge_min_images=0"], "reconstruct.align.merge_min_images must be >= 1"),
+        (
+            ["+reconstruct.align.max_error_sigma=3"],
+            "reconstruct.align: unknown setting(s) ['max_error_sigma']",
+        ),
+        (["reconstruct.gnss.sigma_m=-1"], "reconstruct.gnss.sigma_m must be a number of metres >= 0"),
+        (
+            ["reconstruct.min_registered_fraction=1.5"],
+            "reconstruct.min_registered_fraction must be in [0, 1]",
+        ),
     ],
 )
 def test_a_bad_setting_is_refused_by_name(overrides, named):
-    with pytest.raises(SettingsError, match=named.replace(".", r"\.")):
+    with pytest.raises(SettingsError, match=re.escape(named)):
         cell_settings(composed(*overrides))
 
 
@@ -119,6 +133,49 @@ def test_typed_blocks_keep_the_yaml_values():
         0.8,
         4096,
     )
+
+
+def test_the_reconstruct_group_is_typed_once_with_the_proxy_flight_beside_it():
+    from reconstruct.settings import ReconstructSettings
+
+    settings = ReconstructSettings.from_config(composed().reconstruct)
+    assert (settings.min_images, settings.gnss_sigma_m, settings.deterministic) == (3, 0.05, True)
+    assert (settings.align.max_error_sigmas, settings.align.merge_min_images) == (3.0, 8)
+    assert (settings.proxy.face_budget, settings.proxy.voxel_size_m, settings.proxy.roi_margin_m) == (
+        50000,
+        0.05,
+        10.0,
+    )
+    # The exploratory flight: proxy.dense over dense, key by key; the rest of dense as it is.
+    exploration = settings.for_exploration()
+    assert (exploration.dense.max_image_size, exploration.dense.fusion.method) == (640, "colmap")
+    assert (exploration.dense.fusion.max_normal_error, exploration.dense.sgbm.p1_per_block_pixel) == (
+        10.0,
+        8.0,
+    )
+    assert exploration.dense.num_partners == settings.dense.num_partners == 4
+    assert (settings.dense.max_image_size, settings.dense.fusion.method) == (1024, "rays")
+    assert (
+        exploration.node["dense"]["max_image_size"] == 640
+        and settings.node["dense"]["max_image_size"] == 1024
+    )
+
+
+def test_a_stage_function_refuses_a_config_mapping(tmp_path):
+    """The reconstruction's functions take typed settings: a mapping is refused before any work."""
+    from reconstruct.pipeline import build_proxy, oracle_flight, reconstruct_flight
+    from reconstruct.sfm import sfm_options
+
+    cfg = composed().reconstruct
+    for call in (
+        lambda: reconstruct_flight(tmp_path, tmp_path / "out", cfg, 0),
+        lambda: build_proxy(tmp_path, tmp_path / "out", cfg, 0),
+        lambda: oracle_flight(tmp_path, tmp_path, tmp_path / "out", cfg, 0, None),
+        lambda: sfm_options(cfg.sfm),
+    ):
+        with pytest.raises(TypeError, match="Settings"):
+            call()
+    assert not (tmp_path / "out").exists()
 
 
 def test_each_stage_is_handed_its_typed_part_not_the_run_config(monkeypatch, tmp_path):

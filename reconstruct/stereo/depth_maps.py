@@ -10,7 +10,6 @@ from __future__ import annotations
 import logging
 import os
 import shutil
-from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -21,6 +20,7 @@ import pycolmap
 import scipy.sparse
 from tqdm import tqdm
 
+from reconstruct.dense_settings import DenseSettings
 from reconstruct.depth_filter import edge_pixels, geometric_support
 from reconstruct.stereo.matching import consistent_depth, normals_from_depth, pair_depth, partner_weights
 from reconstruct.workspace import (
@@ -84,37 +84,37 @@ def sparse_incidence(rec: pycolmap.Reconstruction, names) -> scipy.sparse.csr_ma
     return scipy.sparse.csr_matrix((data, (rows, cols)), shape=(len(names), len(column)))
 
 
-def compute_depth_maps_cpu(workspace: Path, cfg: Mapping) -> dict[str, int]:
+def compute_depth_maps_cpu(workspace: Path, settings: DenseSettings) -> dict[str, int]:
     """CPU back-end: SGBM depth + normal maps for every view that has partners (or, with
     ``reference_views_per_point`` set, for the views ``reference_views`` keeps); return valid-pixel
     counts (0 for a view without a map)."""
     workspace = Path(workspace)
     views = read_views(workspace)
-    partners = select_partners(workspace, views, cfg)
-    per_point = cfg.get("reference_views_per_point")
+    partners = select_partners(workspace, views, settings)
+    per_point = settings.reference_views_per_point
     if per_point is not None:
         order = sorted(views)
         keep = reference_views(
             sparse_incidence(pycolmap.Reconstruction(workspace / "sparse"), order),
-            int(per_point),
-            int(cfg.get("reference_min_new_points", 1)),
+            per_point,
+            settings.reference_min_new_points,
         )
         log.info(
             "dense: %d of %d views get a depth map (%d per sparse point), the rest serve as partners",
             int(keep.sum()),
             len(order),
-            int(per_point),
+            per_point,
         )
         references = {name for name, k in zip(order, keep, strict=True) if k}
     else:
         references = set(views)
     points_by_name = sparse_points_by_image(workspace)
-    min_consistent = int(cfg["min_consistent_partners"])
-    rel_tol = float(cfg["consistency_rel_tol"])
-    window = int(cfg["normal_window_px"])
-    edge_margin = int(cfg.get("edge_margin_px", 0))
-    geometric = cfg.get("geometric_consistency") or {"min_views": 0}
-    checked = int(geometric["min_views"]) > 0  # a second pass checks every map against others
+    min_consistent = settings.min_consistent_partners
+    rel_tol = settings.consistency_rel_tol
+    window = settings.normal_window_px
+    edge_margin = settings.edge_margin_px
+    geometric = settings.geometric_consistency
+    checked = geometric.min_views > 0  # a second pass checks every map against others
     raw_dir = workspace / "stereo" / "raw_depth"
     if checked:
         raw_dir.mkdir(parents=True, exist_ok=True)
@@ -137,13 +137,13 @@ def compute_depth_maps_cpu(workspace: Path, cfg: Mapping) -> dict[str, int]:
         ref_gray = gray(name)
         depths, measured = [], []
         for src_name in partners[name]:
-            depth = pair_depth(ref, views[src_name], ref_gray, gray(src_name), points_by_name[name], cfg)
+            depth = pair_depth(ref, views[src_name], ref_gray, gray(src_name), points_by_name[name], settings)
             if depth is not None:
                 depths.append(depth)
                 measured.append(views[src_name])
         if not depths:
             return name, 0
-        weights = partner_weights(ref, measured, cfg)
+        weights = partner_weights(ref, measured, settings)
         depth = consistent_depth(np.stack(depths), min_consistent, rel_tol, weights)
         depth[edge_pixels(depth, edge_margin)] = np.nan
         if checked:
@@ -156,14 +156,13 @@ def compute_depth_maps_cpu(workspace: Path, cfg: Mapping) -> dict[str, int]:
 
     def checked_view(name: str) -> tuple[str, int]:
         depth = raw(name)
-        others = [n for n in neighbours[name] if valid_pixels.get(n, 0) > 0][: int(geometric["num_views"])]
-        support = geometric_support(
-            views[name], depth, [(views[n], raw(n)) for n in others], float(geometric["rel_tol"])
-        )
-        depth[support < int(geometric["min_views"])] = np.nan
+        others = [n for n in neighbours[name] if valid_pixels.get(n, 0) > 0][: geometric.num_views]
+        measured = [(views[n], raw(n)) for n in others]
+        support = geometric_support(views[name], depth, measured, geometric.rel_tol)
+        depth[support < geometric.min_views] = np.nan
         return name, finish(name, depth)
 
-    threads = int(cfg.get("num_threads", -1))
+    threads = settings.num_threads
     threads = os.cpu_count() or 1 if threads <= 0 else threads
     names = sorted(views)
     n_without = sum(1 for n in names if not partners.get(n))
@@ -193,7 +192,7 @@ def compute_depth_maps_cpu(workspace: Path, cfg: Mapping) -> dict[str, int]:
     return valid_pixels
 
 
-def compute_depth_maps_cuda(workspace: Path, cfg: Mapping) -> dict[str, int]:
+def compute_depth_maps_cuda(workspace: Path, settings: DenseSettings) -> dict[str, int]:
     """CUDA back-end: ``pycolmap.patch_match_stereo`` with geometric consistency.
 
     Source views come from the workspace's ``stereo/patch-match.cfg`` (the undistorter writes
@@ -203,12 +202,11 @@ def compute_depth_maps_cuda(workspace: Path, cfg: Mapping) -> dict[str, int]:
     # COLMAP only logs (does not raise) when it cannot write a map into a missing folder.
     for folder in ("depth_maps", "normal_maps", "consistency_graphs"):
         (stereo / folder).mkdir(parents=True, exist_ok=True)
-    pcfg = cfg["patch_match"]
     options = pycolmap.PatchMatchOptions()
-    options.max_image_size = int(cfg["max_image_size"])
-    options.window_radius = int(pcfg["window_radius"])
-    options.num_iterations = int(pcfg["num_iterations"])
+    options.max_image_size = settings.max_image_size
+    options.window_radius = settings.patch_match.window_radius
+    options.num_iterations = settings.patch_match.num_iterations
     options.geom_consistency = True
-    options.min_triangulation_angle = float(cfg["min_triangulation_angle_deg"])
+    options.min_triangulation_angle = settings.min_triangulation_angle_deg
     pycolmap.patch_match_stereo(workspace, workspace_format="COLMAP", options=options)
     return {p.name[: -len(DEPTH_SUFFIX)]: 1 for p in (stereo / "depth_maps").glob(f"*{DEPTH_SUFFIX}")}

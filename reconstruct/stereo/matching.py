@@ -9,23 +9,14 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING
+from collections.abc import Sequence
 
 import cv2
 import numpy as np
 
-from reconstruct.dense_settings import (
-    OPENCV_P1_PER_BLOCK_PIXEL,
-    OPENCV_P2_PER_BLOCK_PIXEL,
-)
-from reconstruct.rectify import DEFAULT_MAX_AREA_RATIO, RectifiedPair, rectify_pair
-from reconstruct.workspace import (
-    View,
-)
-
-if TYPE_CHECKING:
-    pass
+from reconstruct.dense_settings import DenseSettings, SgbmSettings
+from reconstruct.rectify import RectifiedPair, rectify_pair
+from reconstruct.workspace import View
 
 log = logging.getLogger(__name__)
 
@@ -77,21 +68,21 @@ def textured_pixels(gray: np.ndarray, window_px: int, min_std: float) -> np.ndar
     return np.sqrt(np.maximum(mean_sq - mean * mean, 0.0)) >= float(min_std)
 
 
-def sgbm_matcher(scfg: Mapping, num_disparities: int):
+def sgbm_matcher(sgbm: SgbmSettings, num_disparities: int):
     """OpenCV's 3-way SGBM with ``reconstruct.dense.sgbm``'s settings, searching ``num_disparities``
     px from 0 (a multiple of 16); P1 and P2 are the settings' per-pixel penalties times the block's
     area (OpenCV's suggested 8 and 32 for one channel)."""
-    block = int(scfg["block_size"])
+    block = sgbm.block_size
     return cv2.StereoSGBM.create(
         minDisparity=0,
         numDisparities=int(num_disparities),
         blockSize=block,
-        P1=round(float(scfg.get("p1_per_block_pixel", OPENCV_P1_PER_BLOCK_PIXEL)) * block * block),
-        P2=round(float(scfg.get("p2_per_block_pixel", OPENCV_P2_PER_BLOCK_PIXEL)) * block * block),
-        disp12MaxDiff=int(scfg["disp12_max_diff"]),
-        uniquenessRatio=int(scfg["uniqueness_ratio"]),
-        speckleWindowSize=int(scfg["speckle_window_size"]),
-        speckleRange=int(scfg["speckle_range"]),
+        P1=round(sgbm.p1_per_block_pixel * block * block),
+        P2=round(sgbm.p2_per_block_pixel * block * block),
+        disp12MaxDiff=sgbm.disp12_max_diff,
+        uniquenessRatio=sgbm.uniqueness_ratio,
+        speckleWindowSize=sgbm.speckle_window_size,
+        speckleRange=sgbm.speckle_range,
         mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
     )
 
@@ -145,19 +136,24 @@ def matchable_window(
 
 
 def pair_depth(
-    ref: View, src: View, ref_gray: np.ndarray, src_gray: np.ndarray, ref_points: np.ndarray, cfg: Mapping
+    ref: View,
+    src: View,
+    ref_gray: np.ndarray,
+    src_gray: np.ndarray,
+    ref_points: np.ndarray,
+    settings: DenseSettings,
 ) -> np.ndarray | None:
     """Depth (H, W) float32 in metres along the reference's optical axis from one stereo pair.
 
     NaN where SGBM found no consistent match. ``ref_points`` (P, 3) are sparse world points seen by
     the reference; they bound the disparity search. None if the pair cannot be rectified.
     """
-    max_area = float(cfg.get("max_rectified_area_ratio", DEFAULT_MAX_AREA_RATIO))
+    max_area = settings.max_rectified_area_ratio
     pair = rectify_pair(ref, src, max_area_ratio=max_area)
     if pair is None:
         return None
     depth_rect = (ref_points - ref.center) @ pair.rect_from_world[2]
-    search = disparity_search_range(pair, depth_rect, int(cfg["max_num_disparities"]))
+    search = disparity_search_range(pair, depth_rect, settings.max_num_disparities)
     if search is None:
         return None
     min_disp, num_disp = search
@@ -167,9 +163,9 @@ def pair_depth(
     width, height = pair.size
     ones = np.full(src_gray.shape, 255, np.uint8)
     right_valid = cv2.warpPerspective(ones, pair.H_src, (width, height), flags=cv2.INTER_NEAREST)
-    scfg = cfg["sgbm"]
+    sgbm = settings.sgbm
     row_span, col_span = slice(0, height), slice(0, width)
-    if scfg.get("crop_to_overlap", False):
+    if sgbm.crop_to_overlap:
         ref_ones = np.full(ref_gray.shape, 255, np.uint8)
         left_valid = cv2.warpPerspective(ref_ones, pair.H_ref, (width, height), flags=cv2.INTER_NEAREST)
         window = matchable_window(left_valid > 0, right_valid > 0, num_disp)
@@ -182,9 +178,9 @@ def pair_depth(
     left = cv2.warpPerspective(ref_gray, corner @ pair.H_ref, size, flags=cv2.INTER_LINEAR)
     right = cv2.warpPerspective(src_gray, corner @ pair.H_src, size, flags=cv2.INTER_LINEAR)
 
-    mirror_pass = bool(scfg.get("mirror_pass", False))
     disparity = np.full((height, width), -1.0, np.float32)
-    disparity[row_span, col_span] = sgbm_disparity(sgbm_matcher(scfg, num_disp), left, right, mirror_pass)
+    matcher = sgbm_matcher(sgbm, num_disp)
+    disparity[row_span, col_span] = sgbm_disparity(matcher, left, right, sgbm.mirror_pass)
     valid = disparity >= 0.0
     valid &= disparity + min_disp > 0.5
     # The matched pixel must lie inside the partner's image (SGBM happily matches the black border).
@@ -211,11 +207,11 @@ def pair_depth(
     with np.errstate(invalid="ignore", divide="ignore"):
         depth = (z_rect / scale).astype(np.float32)
     depth[~(depth > 0)] = np.nan
-    min_std = float(cfg["min_texture_std"])
+    min_std = float(settings.min_texture_std)
     if not min_std >= 0.0:
         raise ValueError(f"reconstruct.dense.min_texture_std must be >= 0 (0 disables it), got {min_std}")
     if min_std > 0.0:
-        depth[~textured_pixels(ref_gray, int(cfg["texture_window_px"]), min_std)] = np.nan
+        depth[~textured_pixels(ref_gray, settings.texture_window_px, min_std)] = np.nan
     return depth
 
 
@@ -252,11 +248,11 @@ def consistent_depth(
     return out
 
 
-def partner_weights(ref: View, partners: Sequence[View], cfg: Mapping) -> np.ndarray | None:
+def partner_weights(ref: View, partners: Sequence[View], settings: DenseSettings) -> np.ndarray | None:
     """The weights of ``partners``' depth maps in ``ref``'s combined map (``consistent_depth``):
-    with ``partner_weights: precision`` each pair's precision, ``B^2`` (at one reference pixel every
-    partner's depth noise is ``z^2 / (f B) s``); None (equal weights) otherwise."""
-    if cfg.get("partner_weights", "equal") != "precision":
+    with ``partner_weights: precision`` each pair's precision, ``B^2`` (m^2; at one reference pixel
+    every partner's depth noise is ``z^2 / (f B) s``); None (equal weights) otherwise."""
+    if settings.partner_weights != "precision":
         return None
     return np.array([float(np.sum((p.center - ref.center) ** 2)) for p in partners])
 
