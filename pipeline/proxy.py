@@ -43,7 +43,8 @@ WORKDIR_REUSE_FLAGS = ("cached", "proxy_cached")
 
 @dataclass(frozen=True)
 class ProxyInputs:
-    """The config groups the proxy stage reads (all but ``cache_dir`` key its cache entry).
+    """The config groups the proxy stage reads, as plain values (all but ``cache_dir`` key its cache
+    entry).
 
     Attributes:
         scene, camera, exploration, render: the ``scene``, ``camera``, ``exploration`` (the
@@ -63,12 +64,12 @@ class ProxyInputs:
 
     @classmethod
     def of(cls, cfg: Mapping) -> ProxyInputs:
-        """The proxy stage's groups of a composed run config."""
+        """The proxy stage's groups of a composed run config, as plain values."""
         return cls(
-            cfg["scene"],
-            cfg["camera"],
-            cfg["exploration"],
-            cfg["render"],
+            plain(cfg["scene"]),
+            plain(cfg["camera"]),
+            plain(cfg["exploration"]),
+            plain(cfg["render"]),
             ReconstructSettings.from_config(cfg["reconstruct"]),
             str(cfg["cache_dir"]),
             int(cfg["seed"]),
@@ -85,7 +86,7 @@ def exploration_cache_key(scene: Scene, inputs: ProxyInputs, for_bundle: bool = 
     reconstructs its own flight in: the noise floor's cells plan on the study's proxy) and without
     a mesh scene's path (another checkout's is another path to the same mesh)."""
     settings = proxy_settings(inputs.reconstruct.for_exploration().node)
-    scene_settings = plain(inputs.scene)
+    scene_settings = dict(inputs.scene)
     if for_bundle:
         settings.pop("deterministic", None)
         # a mesh scene's path differs per checkout; its content is in scene.fingerprint
@@ -93,9 +94,9 @@ def exploration_cache_key(scene: Scene, inputs: ProxyInputs, for_bundle: bool = 
     return cache_key(
         scene.fingerprint,
         scene_settings,
-        plain(inputs.camera),
-        plain(inputs.exploration),
-        plain(inputs.render),
+        inputs.camera,
+        inputs.exploration,
+        inputs.render,
         settings,
         int(inputs.seed),
     )

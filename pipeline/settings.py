@@ -1,9 +1,9 @@
 """Every setting of a cell, checked before any work: a bad value costs one line, not an exploration.
 
-``cell_settings(cfg)`` builds, once, the typed settings each stage will use from the composed run
-config (the planner's parameters with its budget, the camera, the drone, SfM, dense, evaluation,
-and each stage's own config group detached from the run config) and raises ``SettingsError`` naming
-the first bad setting. ``pipeline.cell.run_cell`` calls it before the scene loads and hands each
+``cell_settings(cfg)`` resolves the stages' groups of the composed run config once, as plain
+values, and builds from them the typed settings each stage will use (the planner's parameters with
+its budget, the camera, the drone, the whole reconstruction, evaluation; the scene, exploration and
+render groups as plain values) and raises ``SettingsError`` naming the first bad setting. ``pipeline.cell.run_cell`` calls it before the scene loads and hands each
 stage its own part; no stage reads the run config.
 """
 
@@ -26,11 +26,13 @@ from reconstruct.dense_settings import DenseSettings
 from reconstruct.settings import ReconstructSettings
 from render.flight import RenderSettings
 from scene.camera import Intrinsics
-from scene.config import detached, plain
+from scene.config import plain
 from scene.plan import PlanningError
 from scene.registry import SceneSettings
 
 FLIGHT_ORDERS = ("flight_time", "planner")
+# The run config's groups the stages read (the planner's is ``planner_setup``'s).
+STAGE_GROUPS = ("survey", "camera", "drone", "reconstruct", "evaluate", "scene", "exploration", "render")
 
 
 class SettingsError(ValueError):
@@ -156,35 +158,37 @@ def cell_settings(cfg: DictConfig) -> CellSettings:
         SettingsError: the first bad setting, named, with the reason.
     """
     try:
-        gsd = cfg.survey.target_gsd_m
+        # Each stage's group as plain values, resolved once: every block below is typed from these.
+        group = {name: plain(cfg[name]) for name in STAGE_GROUPS}
+        gsd = group["survey"]["target_gsd_m"]
         if isinstance(gsd, bool) or not isinstance(gsd, int | float) or not (math.isfinite(gsd) and gsd > 0):
             raise ValueError(f"survey.target_gsd_m must be a positive number (m/px), got {gsd!r}")
         try:
-            intrinsics = Intrinsics(**plain(cfg.camera))
+            intrinsics = Intrinsics(**group["camera"])
         except (TypeError, ValueError) as exc:
             raise ValueError(f"camera: {exc}") from exc
-        drone = DroneSettings.from_config(plain(cfg.drone))
-        order = OmegaConf.select(cfg, "survey.flight_order", default="planner")
+        drone = DroneSettings.from_config(group["drone"])
+        order = group["survey"].get("flight_order", "planner")
         if order not in FLIGHT_ORDERS:
             raise ValueError(f"survey.flight_order must be one of {FLIGHT_ORDERS}, got {order!r}")
         # The reconstruction before the planner: ours' budget prune reads the dense stage's partner
         # test (planner.budget_partners), so a bad value is named where the user set it.
-        reconstruct = ReconstructSettings.from_config(cfg.reconstruct)
+        reconstruct = ReconstructSettings.from_config(group["reconstruct"])
         check_fusion_memory(reconstruct.dense, intrinsics)
         params, budget = planner_setup(cfg)
         target = str(cfg.planner._target_)
         check_planner(target, params, intrinsics)
-        evaluation = EvaluationSettings.from_config(cfg.evaluate)
+        evaluation = EvaluationSettings.from_config(group["evaluate"])
     except SettingsError:
         raise
     except (ValueError, TypeError, KeyError, PlanningError) as exc:
         raise SettingsError(str(exc).strip("'\"")) from exc
     seed = int(cfg.seed)
     proxy = ProxyInputs(
-        detached(cfg.scene),
-        detached(cfg.camera),
-        detached(cfg.exploration),
-        detached(cfg.render),
+        group["scene"],
+        group["camera"],
+        group["exploration"],
+        group["render"],
         reconstruct,
         str(cfg.cache_dir),
         seed,

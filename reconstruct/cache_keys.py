@@ -130,10 +130,10 @@ def _in_effect(section: str, value, fusion_bytes: float = 0.0):
     return {**value, "mapping": {k: v for k, v in mapping.items() if k not in unused}}
 
 
-def proxy_settings(cfg: Mapping) -> dict:
+def proxy_settings(node: Mapping) -> dict:
     """The ``reconstruct`` settings a proxy depends on (all but ``OUTPUT_ONLY_KEYS`` and the other
-    mapper's settings), for cache keys."""
-    return {key: _in_effect(key, value) for key, value in plain(cfg).items() if key not in OUTPUT_ONLY_KEYS}
+    mapper's settings), for cache keys; ``node`` as plain values (``ReconstructSettings.node``)."""
+    return {key: _in_effect(key, value) for key, value in node.items() if key not in OUTPUT_ONLY_KEYS}
 
 
 def flight_fusion_bytes(n_images: int, intrinsics: Mapping, dense_cfg: Mapping) -> float:

@@ -7,8 +7,9 @@ for the stage's cache keys (``reconstruct.cache_keys``), which hash the settings
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 from reconstruct.dense_settings import DenseSettings
 from reconstruct.sfm_settings import SfmSettings
@@ -61,68 +62,57 @@ class ProxySettings:
 
 
 @dataclass(frozen=True)
+class GnssSettings:
+    """The GNSS priors (``reconstruct.gnss``)."""
+
+    sigma_m: float = setting(low=0)  # standard deviation (m); a rendered flight's noise
+
+
+def _derived():
+    return field(default=None, metadata={"derived": True})
+
+
+@dataclass(frozen=True)
 class ReconstructSettings:
-    """The ``reconstruct`` group of a flight's reconstruction, typed.
+    """The ``reconstruct`` group of a flight's reconstruction, typed (``from_config``).
 
     Attributes:
-        node: the group as plain values (the stage's cache keys hash it; nothing else reads it).
         min_images: fewest images a flight may have.
         min_registered_fraction: fewest images SfM must register, as a share of the flight.
-        gnss_sigma_m: the priors' standard deviation (m); a rendered flight's positions get this noise.
         deterministic: single-threaded where threads change results (the study's runs).
         keep_dense_workspace: keep ``dense/`` (depth maps) after fusion.
         oracle_beside: the cell also runs the oracle beside its reconstruction.
-        sfm, align, dense, proxy: the blocks, typed.
+        gnss, sfm, align, dense, proxy: the blocks, typed.
+        node: the group as plain values (the stage's cache keys hash it; nothing else reads it).
         proxy_dense: the dense settings of the exploratory flight (``proxy.dense`` over ``dense``).
     """
 
-    node: dict
-    min_images: int
-    min_registered_fraction: float
-    gnss_sigma_m: float
-    deterministic: bool
-    keep_dense_workspace: bool
-    oracle_beside: bool
-    sfm: SfmSettings
-    align: AlignSettings
-    dense: DenseSettings
-    proxy: ProxySettings
-    proxy_dense: DenseSettings
+    min_images: int = setting(low=0)
+    min_registered_fraction: float = setting(low=0, high=1)
+    gnss: GnssSettings = setting()
+    sfm: SfmSettings = setting()
+    align: AlignSettings = setting()
+    dense: DenseSettings = setting()
+    proxy: ProxySettings = setting()
+    deterministic: bool = setting(False)
+    keep_dense_workspace: bool = setting(True)
+    oracle_beside: bool = setting(False)
+    node: dict = _derived()
+    proxy_dense: DenseSettings = _derived()
 
     @classmethod
     def from_config(cls, node: Mapping, prefix: str = "reconstruct") -> ReconstructSettings:
         """Check and type the ``reconstruct`` mapping (a ``ValueError`` names the bad setting)."""
-        node = plain(node)
-        if not isinstance(node, Mapping):
-            raise ValueError(f"{prefix} must be a mapping, got {node!r}")
-        for key in ("min_images", "min_registered_fraction", "gnss", "sfm", "align", "dense", "proxy"):
-            if key not in node:
-                raise ValueError(f"{prefix}.{key}: missing")
-        sigma = node["gnss"].get("sigma_m") if isinstance(node["gnss"], Mapping) else None
-        if isinstance(sigma, bool) or not isinstance(sigma, int | float) or sigma < 0:
-            raise ValueError(f"{prefix}.gnss.sigma_m must be a number of metres >= 0, got {sigma!r}")
-        min_images = node["min_images"]
-        if isinstance(min_images, bool) or not isinstance(min_images, int):
-            raise ValueError(f"{prefix}.min_images must be an integer, got {min_images!r}")
-        fraction = node["min_registered_fraction"]
-        if isinstance(fraction, bool) or not isinstance(fraction, int | float) or not 0 <= fraction <= 1:
-            raise ValueError(f"{prefix}.min_registered_fraction must be in [0, 1], got {fraction!r}")
-        return cls(
-            node=node,
-            min_images=min_images,
-            min_registered_fraction=float(fraction),
-            gnss_sigma_m=float(sigma),
-            deterministic=bool(node.get("deterministic", False)),
-            keep_dense_workspace=bool(node.get("keep_dense_workspace", True)),
-            oracle_beside=bool(node.get("oracle_beside", False)),
-            sfm=SfmSettings.from_config(node["sfm"], f"{prefix}.sfm"),
-            align=typed_settings(AlignSettings, node["align"], f"{prefix}.align"),
-            dense=DenseSettings.from_config(node["dense"], f"{prefix}.dense"),
-            proxy=typed_settings(ProxySettings, node["proxy"], f"{prefix}.proxy"),
-            proxy_dense=DenseSettings.from_config(
-                proxy_flight_config(node)["dense"], f"{prefix}.proxy.dense"
-            ),
-        )
+        typed = typed_settings(cls, node, prefix)
+        values = plain(node)
+        exploration = proxy_flight_config(values)
+        proxy_dense = typed_settings(DenseSettings, exploration["dense"], f"{prefix}.proxy.dense")
+        return replace(typed, node=values, proxy_dense=proxy_dense)
+
+    @property
+    def gnss_sigma_m(self) -> float:
+        """The priors' standard deviation (m)."""
+        return self.gnss.sigma_m
 
     def for_exploration(self) -> ReconstructSettings:
         """These settings as the exploratory flight runs them: ``proxy.dense`` over ``dense``."""
@@ -130,13 +120,14 @@ class ReconstructSettings:
 
 
 def proxy_flight_config(node: Mapping) -> dict:
-    """The ``reconstruct`` mapping of the exploratory flight: ``proxy.dense`` overrides ``dense``
-    (nested sections key by key: ``proxy.dense.fusion.method`` leaves the other fusion settings).
+    """The ``reconstruct`` mapping (plain values) of the exploratory flight: ``proxy.dense``
+    overrides ``dense`` (nested sections key by key: ``proxy.dense.fusion.method`` leaves the other
+    fusion settings).
 
     The proxy is meshed from a cloud voxelised at ``proxy.voxel_size_m``, so its depth maps need not
     be computed at the scored flights' resolution (``proxy.dense.max_image_size``).
     """
-    flight = plain(node)
+    flight = copy.deepcopy(dict(node))
     overrides = flight["proxy"].get("dense") or {}
     flight["dense"] = _overridden(flight["dense"], overrides, "reconstruct.proxy.dense")
     return flight

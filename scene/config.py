@@ -119,7 +119,9 @@ def typed_settings(cls, node, prefix: str):
     """Build the settings dataclass ``cls`` from a config mapping, refusing what does not fit.
 
     Every field of ``cls`` is a key of ``node`` (a field with a default may be left out); a key
-    ``cls`` lacks is an error, and so is a value of the wrong kind. A field whose type is itself such
+    ``cls`` lacks is an error, and so is a value of the wrong kind. A field marked ``derived``
+    (``dataclasses.field(default=None, metadata={"derived": True})``) is no key: the builder of
+    ``cls`` fills it from the others. A field whose type is itself such
     a dataclass is built from its sub-mapping. Each field's range (``setting``) is checked, then
     ``cls.__post_init__`` checks what involves several fields. Every error is a ``ValueError`` that
     names the setting (``prefix.key``).
@@ -128,7 +130,7 @@ def typed_settings(cls, node, prefix: str):
         raise ValueError(f"{prefix} must be a mapping, got {node!r}")
     node = plain(node)
     hints = typing.get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls)}
+    fields = {f.name: f for f in dataclasses.fields(cls) if not f.metadata.get("derived")}
     unknown = sorted(set(node) - set(fields))
     if unknown:
         raise ValueError(f"{prefix}: unknown setting(s) {unknown}; known: {sorted(fields)}")

@@ -63,6 +63,11 @@ def reconstruct_cfg(**overrides):
     return cfg
 
 
+def exploration_values(cfg) -> dict:
+    """The exploratory flight's ``reconstruct`` values (``proxy_flight_config`` of the plain mapping)."""
+    return proxy_flight_config(OmegaConf.to_container(cfg, resolve=True))
+
+
 def recon_settings(cfg) -> ReconstructSettings:
     """A ``reconstruct`` mapping typed as the stage takes it."""
     return ReconstructSettings.from_config(cfg)
@@ -1259,18 +1264,18 @@ def test_build_proxy_cuts_to_the_region_of_interest(box_flight, box_reconstructi
 
 def test_proxy_dense_settings_override_only_the_exploratory_flight():
     cfg = reconstruct_cfg(**{"proxy.dense": {"max_image_size": 640, "num_partners": 2}})
-    flight_cfg = proxy_flight_config(cfg)
+    flight_cfg = exploration_values(cfg)
     assert flight_cfg["dense"]["max_image_size"] == 640 and flight_cfg["dense"]["num_partners"] == 2
     assert flight_cfg["dense"]["sgbm"] == OmegaConf.to_container(cfg.dense.sgbm)
     assert cfg.dense.max_image_size == 1024  # the scored flights' settings are untouched
     with pytest.raises(ValueError, match="unknown dense settings"):
-        proxy_flight_config(reconstruct_cfg(**{"proxy.dense": {"max_image_sise": 640}}))
+        exploration_values(reconstruct_cfg(**{"proxy.dense": {"max_image_sise": 640}}))
     # A nested section is overridden key by key: the other fusion settings stay the scored flights'.
     cfg = reconstruct_cfg(**{"proxy.dense": {"fusion": {"method": "colmap"}}, "dense.fusion.method": "rays"})
-    fusion = proxy_flight_config(cfg)["dense"]["fusion"]
+    fusion = exploration_values(cfg)["dense"]["fusion"]
     assert fusion == {**OmegaConf.to_container(cfg.dense.fusion), "method": "colmap"}
     with pytest.raises(ValueError, match=r"proxy\.dense\.fusion: unknown dense settings \['methd'\]"):
-        proxy_flight_config(reconstruct_cfg(**{"proxy.dense": {"fusion": {"methd": "colmap"}}}))
+        exploration_values(reconstruct_cfg(**{"proxy.dense": {"fusion": {"methd": "colmap"}}}))
 
 
 def test_the_proxy_keeps_the_former_matcher_and_normal_tolerance_and_its_cache_key():
@@ -1279,7 +1284,7 @@ def test_the_proxy_keeps_the_former_matcher_and_normal_tolerance_and_its_cache_k
     cfg = reconstruct_cfg()
     assert cfg.dense.fusion.max_normal_error == 30.0  # the scored flights (SGBM's depth-derived normals)
     assert cfg.dense.sgbm.p1_per_block_pixel == 0.8 and cfg.dense.sgbm.crop_to_overlap
-    proxy_dense = proxy_flight_config(cfg)["dense"]
+    proxy_dense = exploration_values(cfg)["dense"]
     assert proxy_dense["fusion"]["max_normal_error"] == 10.0
     assert proxy_dense["sgbm"]["p1_per_block_pixel"] == 8.0 and not proxy_dense["sgbm"]["crop_to_overlap"]
     # Spelled out at their former values, the proxy's settings key its proxies as before they were
@@ -1291,10 +1296,10 @@ def test_the_proxy_keeps_the_former_matcher_and_normal_tolerance_and_its_cache_k
     former.dense.fusion.max_normal_error = 10.0
     former.dense.sgbm.p1_per_block_pixel = 8.0
     del former.dense.sgbm["crop_to_overlap"]
-    assert proxy_settings(proxy_flight_config(cfg)) == proxy_settings(proxy_flight_config(former))
+    assert proxy_settings(exploration_values(cfg)) == proxy_settings(exploration_values(former))
     for changed in ("proxy.dense.fusion.max_normal_error", "proxy.dense.sgbm.p1_per_block_pixel"):
         other = reconstruct_cfg(**{changed: 20.0})
-        assert proxy_settings(proxy_flight_config(other)) != proxy_settings(proxy_flight_config(cfg))
+        assert proxy_settings(exploration_values(other)) != proxy_settings(exploration_values(cfg))
 
 
 def _flight_of_images(image_dir: Path, images, intr: Intrinsics) -> Path:

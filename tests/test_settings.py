@@ -69,10 +69,10 @@ def composed(*overrides: str):
             ["+reconstruct.align.max_error_sigma=3"],
             "reconstruct.align: unknown setting(s) ['max_error_sigma']",
         ),
-        (["reconstruct.gnss.sigma_m=-1"], "reconstruct.gnss.sigma_m must be a number of metres >= 0"),
+        (["reconstruct.gnss.sigma_m=-1"], "reconstruct.gnss.sigma_m must be >= 0"),
         (
             ["reconstruct.min_registered_fraction=1.5"],
-            "reconstruct.min_registered_fraction must be in [0, 1]",
+            "reconstruct.min_registered_fraction must be <= 1",
         ),
     ],
 )
