@@ -3,8 +3,9 @@
 ``cell_settings(cfg)`` resolves the stages' groups of the composed run config once, as plain
 values, and builds from them the typed settings each stage will use (the planner's parameters with
 its budget, the camera, the drone, the whole reconstruction, evaluation; the scene, exploration and
-render groups as plain values) and raises ``SettingsError`` naming the first bad setting. ``pipeline.cell.run_cell`` calls it before the scene loads and hands each
-stage its own part; no stage reads the run config.
+render groups as plain values) and raises ``SettingsError`` naming the first bad setting.
+``pipeline.cell.run_cell`` calls it before the scene loads and hands each stage its own part; no
+stage reads the run config.
 """
 
 from __future__ import annotations
