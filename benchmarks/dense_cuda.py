@@ -50,7 +50,7 @@ from reconstruct.dense import fuse
 from reconstruct.dense_settings import DenseSettings
 from reconstruct.stereo.depth_maps import compute_depth_maps_cpu, compute_depth_maps_cuda
 from reconstruct.workspace import prepare_workspace
-from render import render_flight
+from render import RenderSettings, render_flight
 from scene.base import Box
 from scene.camera import Intrinsics
 from scene.registry import load_scene
@@ -227,7 +227,7 @@ def time_render(viewpoints_csv: Path, out: Path, n_views: int, cache_dir: Path) 
     camera = yaml.safe_load((ROOT / "conf" / "config.yaml").read_text())["camera"]
     intrinsics = Intrinsics(int(camera["width"]), int(camera["height"]), float(camera["hfov_deg"]))
     viewpoints = np.loadtxt(viewpoints_csv, delimiter=",", skiprows=1, usecols=(1, 2, 3, 4, 5))[:n_views]
-    result = render_flight(scene, viewpoints, intrinsics, out / "images", cfg)
+    result = render_flight(scene, viewpoints, intrinsics, out / "images", RenderSettings.from_config(cfg))
     record = {
         "backend": result.backend,
         "n_views": len(viewpoints),

@@ -27,7 +27,7 @@ from omegaconf import OmegaConf
 
 from evaluate.geometry import sample_surface
 from evaluate.metrics import score_details
-from render import SceneRenderer
+from render import RenderSettings, SceneRenderer
 from scene.camera import Intrinsics
 from scene.mesh_loader import MeshSceneSpec, load_mesh_scene
 
@@ -111,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = OmegaConf.load(Path(__file__).resolve().parents[1] / "conf/render/default.yaml")
 
         def render():
-            with SceneRenderer(scene, camera, cfg) as renderer:
+            with SceneRenderer(scene, camera, RenderSettings.from_config(cfg)) as renderer:
                 return [renderer.render(v) for v in views]
 
         timed(f"render {args.views} views at 1024x768", render)

@@ -38,6 +38,7 @@ from planner.lawnmower.lawnmower import plan_exploration
 from reconstruct.pipeline import build_proxy, reconstruct_flight
 from reconstruct.settings import ReconstructSettings
 from render.flight import render_flight
+from render.settings import RenderSettings
 from scene.camera import Intrinsics
 from scene.cameras_file import CAMERAS_FILE, read_cameras, write_cameras
 from scene.procedural.tomb import build_tomb
@@ -72,7 +73,9 @@ def render_base_flight(out_dir: Path, n_images: int) -> Path:
         plan = plan_exploration(scene.structure_bounds, intrinsics, exploration, 0)
     render = OmegaConf.load(ROOT / "conf" / "render" / "default.yaml")
     print(f"rendering the base flight: {len(plan.viewpoints)} images (overlap {exploration.front_overlap})")
-    render_flight(scene, plan.viewpoints, intrinsics, out_dir, render, kinds=plan.kinds)
+    render_flight(
+        scene, plan.viewpoints, intrinsics, out_dir, RenderSettings.from_config(render), kinds=plan.kinds
+    )
     return out_dir
 
 

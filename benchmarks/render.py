@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 from omegaconf import OmegaConf
 
-from render import render_flight
+from render import RenderSettings, render_flight
 from scene.camera import Intrinsics
 
 REPO = Path(__file__).resolve().parents[1]
@@ -86,7 +86,7 @@ def run_cell(scene_name: str, backend: str, n_views: int, out_dir: Path) -> dict
     cfg = OmegaConf.load(REPO / "conf" / "render" / "default.yaml")
     cfg.backend = backend
     viewpoints = survey_viewpoints(scene.structure_bounds.lo, scene.structure_bounds.hi, n_views, intrinsics)
-    result = render_flight(scene, viewpoints, intrinsics, out_dir, cfg)
+    result = render_flight(scene, viewpoints, intrinsics, out_dir, RenderSettings.from_config(cfg))
     png_bytes = sum(p.stat().st_size for p in out_dir.glob("*.png"))
     return {
         "scene": scene_name,

@@ -283,7 +283,7 @@ def lens_roundtrip(args, cfg, origin) -> dict:
     entry's exploratory views rendered at ``--render-size``, warped with radial distortion ``--k1``
     after rendering, consumer GNSS noise, EXIF + XMP; ``plan-photos`` on them with the survey origin
     (cameras against the truth), then on the same photos with their XMP removed and nothing typed."""
-    from render import render_flight
+    from render import RenderSettings, render_flight
     from scene.camera import Intrinsics
     from scene.cameras_file import read_cameras
     from scene.registry import load_scene
@@ -308,7 +308,9 @@ def lens_roundtrip(args, cfg, origin) -> dict:
         print(f"the render in {render_dir} is this one's ({len(keep)} views): kept", file=sys.stderr)
     else:
         marker.unlink(missing_ok=True)
-        render_flight(scene, entry.viewpoints[keep], intrinsics, render_dir, cfg.render)
+        render_flight(
+            scene, entry.viewpoints[keep], intrinsics, render_dir, RenderSettings.from_config(cfg.render)
+        )
         if args.k1:
             from PIL import Image
 

@@ -26,7 +26,7 @@ from reconstruct.cache_keys import proxy_settings
 from reconstruct.pipeline import build_proxy
 from reconstruct.proxy import degraded_ground_truth, oriented_cloud
 from reconstruct.settings import ReconstructSettings
-from render import render_flight
+from render import RenderSettings, render_flight
 from scene.base import Box, Scene
 from scene.camera import Intrinsics
 from scene.config import plain
@@ -47,9 +47,10 @@ class ProxyInputs:
     entry).
 
     Attributes:
-        scene, camera, exploration, render: the ``scene``, ``camera``, ``exploration`` (the
-            exploratory flight) and ``render`` groups.
-        reconstruct: the ``reconstruct`` settings, typed (its ``proxy`` block meshes the proxy).
+        scene, camera, exploration: the ``scene``, ``camera`` and ``exploration`` (the
+            exploratory flight) groups.
+        render, reconstruct: the ``render`` and ``reconstruct`` settings, typed (the latter's
+            ``proxy`` block meshes the proxy).
         cache_dir: the stage cache root.
         seed: seed of the reconstruction (GNSS noise, RANSAC, mapper).
     """
@@ -57,7 +58,7 @@ class ProxyInputs:
     scene: Mapping
     camera: Mapping
     exploration: Mapping
-    render: Mapping
+    render: RenderSettings
     reconstruct: ReconstructSettings
     cache_dir: str
     seed: int
@@ -69,7 +70,7 @@ class ProxyInputs:
             plain(cfg["scene"]),
             plain(cfg["camera"]),
             plain(cfg["exploration"]),
-            plain(cfg["render"]),
+            RenderSettings.from_config(cfg["render"]),
             ReconstructSettings.from_config(cfg["reconstruct"]),
             str(cfg["cache_dir"]),
             int(cfg["seed"]),
@@ -96,7 +97,7 @@ def exploration_cache_key(scene: Scene, inputs: ProxyInputs, for_bundle: bool = 
         scene_settings,
         inputs.camera,
         inputs.exploration,
-        inputs.render,
+        inputs.render.node,
         settings,
         int(inputs.seed),
     )

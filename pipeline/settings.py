@@ -25,7 +25,7 @@ from planner.budget import DEFAULT_LEVEL, apply_budget
 from reconstruct.cache_keys import flight_fusion_bytes
 from reconstruct.dense_settings import DenseSettings
 from reconstruct.settings import ReconstructSettings
-from render.flight import RenderSettings
+from render.settings import RenderSettings
 from scene.camera import Intrinsics
 from scene.config import plain
 from scene.plan import PlanningError
@@ -180,6 +180,7 @@ def cell_settings(cfg: DictConfig) -> CellSettings:
         target = str(cfg.planner._target_)
         check_planner(target, params, intrinsics)
         evaluation = EvaluationSettings.from_config(group["evaluate"])
+        render = RenderSettings.from_config(group["render"])
     except SettingsError:
         raise
     except (ValueError, TypeError, KeyError, PlanningError) as exc:
@@ -189,7 +190,7 @@ def cell_settings(cfg: DictConfig) -> CellSettings:
         group["scene"],
         group["camera"],
         group["exploration"],
-        group["render"],
+        render,
         reconstruct,
         str(cfg.cache_dir),
         seed,
@@ -204,7 +205,7 @@ def cell_settings(cfg: DictConfig) -> CellSettings:
         planner=PlannerSettings(target, params, str(order)),
         scene=SceneSettings(proxy.scene),
         proxy=proxy,
-        render=RenderSettings(proxy.render),
+        render=render,
         reconstruct=reconstruct,
         seed=seed,
         cache_dir=None if cfg.cache_dir is None else str(cfg.cache_dir),

@@ -7,10 +7,12 @@ Importing this package does not import MuJoCo: the OpenGL back-end must be chose
 from render.backend import BackendError, select_backend
 from render.flight import RenderResult, image_name, render_flight
 from render.renderer import SceneRenderer
+from render.settings import RenderSettings
 
 __all__ = [
     "BackendError",
     "RenderResult",
+    "RenderSettings",
     "SceneRenderer",
     "image_name",
     "render_flight",

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from render import render_flight
+from render import RenderSettings, render_flight
 from scene.camera import Intrinsics
 from scene.plan import read_viewpoints
 from scene.registry import load_scene
@@ -63,7 +63,9 @@ def main(argv: list[str] | None = None) -> int:
     # Scene configs interpolate the run's ${seed}.
     root = OmegaConf.merge({"seed": args.seed}, {"scene": OmegaConf.load(scene_path)})
     scene = load_scene(root.scene)
-    result = render_flight(scene, viewpoints, intrinsics, args.out_dir, cfg, kinds)
+    result = render_flight(
+        scene, viewpoints, intrinsics, args.out_dir, RenderSettings.from_config(cfg), kinds
+    )
     print(
         f"{len(result.names)} images of {scene.name} in {result.image_dir} ({result.backend}, "
         f"{result.images_per_s:.2f} images/s)"

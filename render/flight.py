@@ -8,7 +8,7 @@ from __future__ import annotations
 import re
 import time
 from collections import deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,10 +18,10 @@ from tqdm import tqdm
 
 from render.backend import select_backend
 from render.renderer import SceneRenderer
+from render.settings import RenderSettings
 from scene.base import Scene
 from scene.camera import Intrinsics, validate_viewpoint_array
 from scene.cameras_file import CAMERAS_FILE, DEFAULT_KIND, write_cameras
-from scene.config import StageSettings, stage_node
 from scene.io import write_atomic
 
 _IMAGE_NAME = re.compile(r"^\d{6}\.png$")
@@ -89,16 +89,12 @@ def _write_png(path: Path, rgb: np.ndarray, compression: int) -> None:
     write_atomic(path, writer)
 
 
-class RenderSettings(StageSettings):
-    """The ``render`` group of a cell (``render_flight`` reads it)."""
-
-
 def render_flight(
     scene: Scene,
     viewpoints,
     intrinsics: Intrinsics,
     out_dir: str | Path,
-    cfg: Mapping | RenderSettings,
+    render: RenderSettings,
     kinds: Sequence[str] | None = None,
 ) -> RenderResult:
     """Render every viewpoint of a flight to ``out_dir/000000.png ...`` and write ``cameras.json``.
@@ -108,7 +104,7 @@ def render_flight(
         viewpoints: (V, 5) array ``x, y, z`` (m), ``yaw_deg, pitch_deg``, in flight order.
         intrinsics: the survey camera.
         out_dir: output folder (created; earlier images and ``cameras.json`` there are replaced).
-        cfg: the ``render`` config (``RenderSettings`` in a cell).
+        render: the ``render`` settings, typed (``RenderSettings.from_config``).
         kinds: optional V labels (``detail``, ``coverage``, ...); ``view`` when omitted.
 
     Returns:
@@ -121,13 +117,16 @@ def render_flight(
     """
     vps = validate_viewpoint_array(viewpoints)
     kinds = _validated_kinds(kinds, len(vps))
-    cfg = stage_node(cfg)
-    compression = int(cfg.get("png_compression", 1))
+    if not isinstance(render, RenderSettings):
+        raise TypeError(
+            f"render_flight takes RenderSettings (RenderSettings.from_config), not {type(render)}"
+        )
+    compression = render.png_compression
     if not 0 <= compression <= 9:
         raise ValueError(f"render.png_compression must lie in [0, 9], got {compression}")
-    threads = max(1, int(cfg.get("writer_threads", 2)))
+    threads = max(1, render.writer_threads)
     # Before anything is written: a machine without a working back-end leaves the folder alone.
-    select_backend(cfg.get("backend", "auto"))
+    select_backend(render.backend)
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -139,7 +138,7 @@ def render_flight(
             stale.unlink()
 
     build_start = time.perf_counter()
-    with SceneRenderer(scene, intrinsics, cfg) as renderer:
+    with SceneRenderer(scene, intrinsics, render) as renderer:
         build_time_s = time.perf_counter() - build_start
         start, cpu_start = time.perf_counter(), time.process_time()
         pending: deque = deque()

@@ -12,11 +12,11 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
+from render.settings import RenderSettings
 from scene.base import MeshPart, Scene
 from scene.camera import Intrinsics
 
@@ -42,19 +42,19 @@ class LightingConfig:
     shadow_margin_m: float
 
     @classmethod
-    def from_cfg(cls, cfg: Mapping) -> LightingConfig:
-        sun, sky = cfg["sun"], cfg["sky"]
+    def of(cls, render: RenderSettings) -> LightingConfig:
+        sun, sky, shadows = render.sun, render.sky, render.shadows
         out = cls(
-            sun_azimuth_deg=float(sun["azimuth_deg"]),
-            sun_elevation_deg=float(sun["elevation_deg"]),
-            sun_diffuse=float(sun["diffuse"]),
-            sky_ambient=float(sky["ambient"]),
-            sky_diffuse=float(sky["diffuse"]),
-            sky_color=_rgb(sky["color"], "render.sky.color"),
-            horizon_color=_rgb(sky["horizon_color"], "render.sky.horizon_color"),
-            shadows=bool(cfg["shadows"]["enabled"]),
-            shadow_map_size=int(cfg["shadows"]["map_size"]),
-            shadow_margin_m=float(cfg["shadows"]["margin_m"]),
+            sun_azimuth_deg=sun.azimuth_deg,
+            sun_elevation_deg=sun.elevation_deg,
+            sun_diffuse=sun.diffuse,
+            sky_ambient=sky.ambient,
+            sky_diffuse=sky.diffuse,
+            sky_color=_rgb(sky.color, "render.sky.color"),
+            horizon_color=_rgb(sky.horizon_color, "render.sky.horizon_color"),
+            shadows=shadows.enabled,
+            shadow_map_size=shadows.map_size,
+            shadow_margin_m=shadows.margin_m,
         )
         if not 0.0 < out.sun_elevation_deg <= 90.0:
             raise ValueError(f"render.sun.elevation_deg must lie in (0, 90], got {out.sun_elevation_deg}")
@@ -268,13 +268,13 @@ def _add_parts(spec, mujoco, scene: Scene, crease_deg: float) -> tuple[list[str]
     return names, max_side
 
 
-def build_model(scene: Scene, intrinsics: Intrinsics, cfg: Mapping) -> BuiltModel:
+def build_model(scene: Scene, intrinsics: Intrinsics, render: RenderSettings) -> BuiltModel:
     """Compile ``scene`` into a MuJoCo model with one survey camera (id 0) sized for ``intrinsics``.
 
     Args:
         scene: the ground-truth scene (world metres).
         intrinsics: the camera; the off-screen buffer gets its size and the camera its vertical FOV.
-        cfg: the ``render`` config (lighting, shadows, clipping, anti-aliasing).
+        render: the ``render`` settings (lighting, shadows, clipping, anti-aliasing).
 
     Returns:
         The compiled model with the time it took (s).
@@ -284,10 +284,10 @@ def build_model(scene: Scene, intrinsics: Intrinsics, cfg: Mapping) -> BuiltMode
     import mujoco
 
     start = time.perf_counter()
-    light = LightingConfig.from_cfg(cfg)
+    light = LightingConfig.of(render)
     spec = mujoco.MjSpec()
     spec.modelname = scene.name
-    crease_deg = float(cfg["crease_angle_deg"])
+    crease_deg = render.crease_angle_deg
 
     names, max_side = _add_parts(spec, mujoco, scene, crease_deg)
 
@@ -298,7 +298,7 @@ def build_model(scene: Scene, intrinsics: Intrinsics, cfg: Mapping) -> BuiltMode
     # MuJoCo's directional shadow map is an orthographic square of half-width shadowclip * extent
     # around the light's axis; nothing outside it is shadowed, so by default it spans the bounding
     # sphere of the whole scene.
-    coverage = str(cfg["shadows"]["coverage"])
+    coverage = render.shadows.coverage
     if coverage == "scene":
         shadow_center = 0.5 * (lo + hi)
         shadow_radius = 0.5 * scene_diagonal + light.shadow_margin_m
@@ -319,7 +319,7 @@ def build_model(scene: Scene, intrinsics: Intrinsics, cfg: Mapping) -> BuiltMode
     sun.dir = sun_dir.tolist()
     # The shadow map looks from the light's position along its direction with the camera's clip
     # range: the sun stands a whole scene diagonal back so that everything lies beyond znear.
-    sun_distance = scene_diagonal + float(cfg["znear_m"]) + 1.0
+    sun_distance = scene_diagonal + render.znear_m + 1.0
     sun.pos = (shadow_center - sun_dir * sun_distance).tolist()
     sun.diffuse = [light.sun_diffuse] * 3
     # Ambient sits on the shadowless sky light: MuJoCo drops a shadowing light's ambient too.
@@ -353,7 +353,7 @@ def build_model(scene: Scene, intrinsics: Intrinsics, cfg: Mapping) -> BuiltMode
     vis.global_.offwidth = int(intrinsics.width)
     vis.global_.offheight = int(intrinsics.height)
     vis.quality.shadowsize = light.shadow_map_size
-    vis.quality.offsamples = int(cfg["antialias_samples"])
+    vis.quality.offsamples = render.antialias_samples
     vis.map.haze = 0.0
 
     try:
@@ -365,8 +365,8 @@ def build_model(scene: Scene, intrinsics: Intrinsics, cfg: Mapping) -> BuiltMode
     extent = max(scene_diagonal, 1.0)
     model.stat.extent = extent
     model.stat.center = 0.5 * (lo + hi)
-    znear = float(cfg["znear_m"])
-    zfar = max(float(cfg["zfar_m"]), 2.0 * scene_diagonal + 2.0 * sun_distance)
+    znear = render.znear_m
+    zfar = max(render.zfar_m, 2.0 * scene_diagonal + 2.0 * sun_distance)
     if not 0.0 < znear < zfar:
         raise ValueError(f"render.znear_m must be positive and below the far plane, got {znear}")
     model.vis.map.znear = znear / extent

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-
 import numpy as np
 
 from render.backend import gl_context_class, select_backend
 from render.model import BuiltModel, build_model
+from render.settings import RenderSettings
 from scene.base import Scene
 from scene.camera import Intrinsics, Viewpoint, matrix_from_quat, mujoco_camera_pose
 
@@ -19,21 +18,25 @@ class SceneRenderer:
     or call ``close()``; the context is bound to the creating thread.
     """
 
-    def __init__(self, scene: Scene, intrinsics: Intrinsics, cfg: Mapping):
+    def __init__(self, scene: Scene, intrinsics: Intrinsics, render: RenderSettings):
         """Build the model and the off-screen context.
 
         Args:
             scene: the scene to draw (world metres).
             intrinsics: the camera (image size, field of view).
-            cfg: the ``render`` config (``backend``, lighting, shadows, ...).
+            render: the ``render`` settings (``backend``, lighting, shadows, ...).
         """
-        self.backend = select_backend(cfg.get("backend", "auto"))
+        if not isinstance(render, RenderSettings):
+            raise TypeError(
+                f"rendering takes RenderSettings (RenderSettings.from_config), not {type(render)}"
+            )
+        self.backend = select_backend(render.backend)
         # heavy (mujoco): imported on use
         import mujoco
 
         self._mujoco = mujoco
         self.intrinsics = intrinsics
-        self.built: BuiltModel = build_model(scene, intrinsics, cfg)
+        self.built: BuiltModel = build_model(scene, intrinsics, render)
         model = self.built.model
         self.model = model
         self.data = mujoco.MjData(model)
@@ -47,13 +50,13 @@ class SceneRenderer:
 
         self._scene = mujoco.MjvScene(model, maxgeom=model.ngeom + 16)
         flags = self._scene.flags
-        flags[mujoco.mjtRndFlag.mjRND_SHADOW] = bool(cfg["shadows"]["enabled"])
+        flags[mujoco.mjtRndFlag.mjRND_SHADOW] = render.shadows.enabled
         flags[mujoco.mjtRndFlag.mjRND_SKYBOX] = True
         flags[mujoco.mjtRndFlag.mjRND_FOG] = False
         flags[mujoco.mjtRndFlag.mjRND_HAZE] = False
         flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
         # Back faces stay visible: a scene with a few inverted faces must not show holes.
-        flags[mujoco.mjtRndFlag.mjRND_CULL_FACE] = bool(cfg.get("cull_backfaces", False))
+        flags[mujoco.mjtRndFlag.mjRND_CULL_FACE] = render.cull_backfaces
         self._option = mujoco.MjvOption()
         # Only the textured meshes: no light or camera glyphs, no frames, no convex hulls.
         self._option.flags[:] = 0

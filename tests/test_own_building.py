@@ -8,11 +8,12 @@ import pytest
 import trimesh
 from omegaconf import OmegaConf
 
+from render.settings import RenderSettings
 from scene.camera import Intrinsics, project_points
 from scene.enclosure import exposed_samples, raycasting_scene
 from scene.mesh_loader import MeshSceneSpec, load_mesh_scene
 
-RENDER_CFG = OmegaConf.load("conf/render/default.yaml")
+RENDER_CFG = RenderSettings.from_config(OmegaConf.load("conf/render/default.yaml"))
 
 
 def box(lo, hi) -> trimesh.Trimesh:

@@ -22,7 +22,7 @@ ORIGIN = SurveyOrigin(47.397742, 8.545594, 488.0, "amsl", 90.0)
 @pytest.fixture(scope="module")
 def ground_photos(tmp_path_factory) -> Path:
     """20 nadir photos (4 x 5, 24 m up, 480 x 360) of the tomb's textured ground east of it."""
-    from render import render_flight
+    from render import RenderSettings, render_flight
     from scene.camera import Intrinsics
     from scene.registry import load_scene
 
@@ -32,7 +32,9 @@ def ground_photos(tmp_path_factory) -> Path:
     scene = load_scene(cfg.scene, cache_dir=base / "cache")
     xs, ys = np.meshgrid(np.linspace(32.0, 50.0, 4), np.linspace(-12.0, 12.0, 5))
     vps = np.column_stack([xs.ravel(), ys.ravel(), np.full(20, 24.0), np.zeros(20), np.full(20, -90.0)])
-    render_flight(scene, vps, Intrinsics(480, 360, 60.0), base / "render", cfg.render)
+    render_flight(
+        scene, vps, Intrinsics(480, 360, 60.0), base / "render", RenderSettings.from_config(cfg.render)
+    )
     return photos_from_flight(base / "render", base / "jpeg", ORIGIN, gnss_sigma_m=0.02)
 
 

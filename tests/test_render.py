@@ -21,6 +21,7 @@ import trimesh
 from omegaconf import OmegaConf
 
 from render.backend import probe_backend
+from render.settings import RenderSettings
 from scene.base import Box, MeshPart, Scene
 from scene.camera import Intrinsics, Viewpoint, cam_from_world, project_points
 
@@ -46,7 +47,7 @@ def render_cfg(**overrides):
     cfg = OmegaConf.load(CONFIG)
     for key, value in overrides.items():
         OmegaConf.update(cfg, key, value)
-    return cfg
+    return RenderSettings.from_config(cfg)
 
 
 def ground_part(half_m: float, texture: str | None = None, name: str = "ground") -> MeshPart:

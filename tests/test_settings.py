@@ -187,7 +187,7 @@ def test_each_stage_is_handed_its_typed_part_not_the_run_config(monkeypatch, tmp
 
     from pipeline.settings import CellSettings
     from reconstruct.settings import ReconstructSettings
-    from render.flight import RenderSettings
+    from render.settings import RenderSettings
     from scene.registry import SceneSettings
 
     calls: dict[str, tuple] = {}
